@@ -1,0 +1,109 @@
+//! Rank statistics: coordinate-wise median, trimmed mean, recency-weighted median.
+
+use super::{Candidates, MedianTie, Workspace};
+use crate::network;
+
+/// Midpoint of two finite f32 values without overflow.
+#[inline]
+fn midpoint(lo: f32, hi: f32) -> f32 {
+    ((lo as f64 + hi as f64) * 0.5) as f32
+}
+
+/// Sorts `n` candidates starting at row `first` coordinate-wise into `ws.rows` (only the
+/// central wires are guaranteed sorted) and writes the central pair of coordinate `j` to
+/// `emit(j, lower, upper)`.
+fn central_pairs(
+    c: &Candidates<'_>,
+    first: usize,
+    ws: &mut Workspace,
+    mut emit: impl FnMut(usize, f32, f32),
+) {
+    let d = c.dim();
+    let n = c.len() - first;
+    let (lo, hi) = ((n - 1) / 2, n / 2);
+    let src = &c.values()[first * d..];
+    if let Some(net) = ws.median_nets.get(n) {
+        let rows = &mut ws.rows[..n * d];
+        rows.copy_from_slice(src);
+        network::apply_rows(net, rows, d);
+        for j in 0..d {
+            emit(j, rows[lo * d + j], rows[hi * d + j]);
+        }
+    } else {
+        for j in 0..d {
+            let col = &mut ws.col[..n];
+            for (i, v) in col.iter_mut().enumerate() {
+                *v = src[i * d + j];
+            }
+            let (below, upper, _) = col.select_nth_unstable_by(hi, f32::total_cmp);
+            let upper = *upper;
+            let lower = if lo == hi {
+                upper
+            } else {
+                below.iter().copied().fold(f32::NEG_INFINITY, f32::max)
+            };
+            emit(j, lower, upper);
+        }
+    }
+}
+
+/// Coordinate-wise median with the given rule for an even count.
+pub(super) fn median(c: &Candidates<'_>, tie: MedianTie, ws: &mut Workspace, out: &mut [f32]) {
+    let n = c.len();
+    let first = usize::from(tie == MedianTie::DropOldest && n % 2 == 0);
+    central_pairs(c, first, ws, |j, lo, hi| {
+        out[j] = match tie {
+            MedianTie::Average | MedianTie::DropOldest => midpoint(lo, hi),
+            MedianTie::Lower => lo,
+            MedianTie::Upper => hi,
+        };
+    });
+}
+
+/// Per coordinate: sort, drop `min(k, (n - 1) / 2)` values from each end, average the rest.
+pub(super) fn trimmed_mean(c: &Candidates<'_>, k: usize, ws: &mut Workspace, out: &mut [f32]) {
+    let (n, d) = (c.len(), c.dim());
+    let r = k.min((n - 1) / 2);
+    for (j, o) in out.iter_mut().enumerate().take(d) {
+        let col = &mut ws.col[..n];
+        for (i, v) in col.iter_mut().enumerate() {
+            *v = c.values()[i * d + j];
+        }
+        col.sort_unstable_by(f32::total_cmp);
+        let kept = &col[r..n - r];
+        let sum: f64 = kept.iter().map(|&v| v as f64).sum();
+        *o = (sum / kept.len() as f64) as f32;
+    }
+}
+
+/// Weighted coordinate-wise median with weights `exp(-m * age)`, age 0 = newest.
+pub(super) fn recency_median(c: &Candidates<'_>, m: f64, ws: &mut Workspace, out: &mut [f32]) {
+    let (n, d) = (c.len(), c.dim());
+    // m >= 0 favours the newest: weight index k = age = n - 1 - i.
+    ws.exp_weights(m, n, m < 0.0);
+    let total: f64 = ws.score[..n].iter().sum();
+    let half = 0.5 * total;
+    for (j, o) in out.iter_mut().enumerate().take(d) {
+        let pairs = &mut ws.pairs[..n];
+        for (i, p) in pairs.iter_mut().enumerate() {
+            *p = (c.values()[i * d + j], ws.score[i]);
+        }
+        pairs.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        let mut cum = 0.0;
+        let mut value = pairs[n - 1].0;
+        for (idx, &(v, w)) in pairs.iter().enumerate() {
+            cum += w;
+            if cum >= half {
+                // Exactly half the weight on each side: average the two values, as the
+                // unweighted median does for an even count.
+                value = if (cum - half).abs() <= 1e-12 * total && idx + 1 < n {
+                    midpoint(v, pairs[idx + 1].0)
+                } else {
+                    v
+                };
+                break;
+            }
+        }
+        *o = value;
+    }
+}

@@ -1,0 +1,545 @@
+//! The streaming temporal ensembler: a ring of live chunks keyed by absolute control time.
+
+use std::fmt;
+
+use serde::{Deserialize, Serialize};
+
+use crate::aggregate::{Aggregate, Aggregator, Candidates, Workspace};
+use crate::bracket::{self, BracketReport};
+use crate::error::EnsembleError;
+use crate::geometry::ChunkGeometry;
+
+/// What the caller knows about one query. The evaluator knows which queries it corrupted; a
+/// deployed controller leaves the default (trusted).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+pub struct QueryMeta {
+    /// Whether the query's observation was corrupted.
+    pub corrupted: bool,
+}
+
+impl QueryMeta {
+    /// A trusted query.
+    pub const CLEAN: Self = Self { corrupted: false };
+    /// A query known to be corrupted.
+    pub const CORRUPTED: Self = Self { corrupted: true };
+}
+
+/// Where a step stands relative to the median's breakdown point, from the `q` corrupted
+/// among the `M` aggregated candidates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Regime {
+    /// `2q < M`: the coordinate-wise median is guaranteed inside the clean bracket.
+    #[serde(rename = "2q<M")]
+    Guaranteed,
+    /// `2q = M`: a tie, no guarantee.
+    #[serde(rename = "2q=M")]
+    Tie,
+    /// `2q > M`: corrupted candidates are the majority.
+    #[serde(rename = "2q>M")]
+    Exceeded,
+}
+
+impl Regime {
+    /// The three regimes in table order.
+    pub const ALL: [Regime; 3] = [Regime::Guaranteed, Regime::Tie, Regime::Exceeded];
+
+    /// The regime of `q` corrupted among `m` candidates.
+    pub fn of(q: usize, m: usize) -> Self {
+        match (2 * q).cmp(&m) {
+            std::cmp::Ordering::Less => Self::Guaranteed,
+            std::cmp::Ordering::Equal => Self::Tie,
+            std::cmp::Ordering::Greater => Self::Exceeded,
+        }
+    }
+
+    /// Position in [`Regime::ALL`].
+    pub fn index(self) -> usize {
+        self as usize
+    }
+}
+
+impl fmt::Display for Regime {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::Guaranteed => "2q<M",
+            Self::Tie => "2q=M",
+            Self::Exceeded => "2q>M",
+        })
+    }
+}
+
+/// What happened at one control time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StepReport {
+    /// Control time of the action.
+    pub tau: u64,
+    /// `M(tau)`: chunks covering `tau`.
+    pub m: usize,
+    /// `q(tau)`: covering chunks flagged corrupted.
+    pub q: usize,
+    /// Candidates excluded for a NaN or infinite coordinate (counted in `m`).
+    pub excluded: usize,
+    /// Of the excluded, how many were flagged corrupted (counted in `q`).
+    pub excluded_corrupted: usize,
+    /// Regime of the candidates actually aggregated: `q - excluded_corrupted` corrupted
+    /// among `m - excluded`.
+    pub regime: Regime,
+    /// Query time of the oldest covering chunk.
+    pub oldest_query: u64,
+    /// Query time of the newest covering chunk.
+    pub newest_query: u64,
+}
+
+impl StepReport {
+    /// Candidates aggregated, `m - excluded`.
+    pub fn used(&self) -> usize {
+        self.m - self.excluded
+    }
+
+    #[cfg(test)]
+    pub(crate) fn for_test(m: usize, q: usize) -> Self {
+        Self {
+            tau: 0,
+            m,
+            q,
+            excluded: 0,
+            excluded_corrupted: 0,
+            regime: Regime::of(q, m),
+            oldest_query: 0,
+            newest_query: 0,
+        }
+    }
+}
+
+/// The result of [`TemporalEnsembler::action`]: the action (borrowed from the ensembler),
+/// the step report, and the bracket diagnostics when enabled and defined.
+#[derive(Debug, Clone, Copy)]
+pub struct Step<'a> {
+    /// The aggregated action, `d` coordinates.
+    pub action: &'a [f32],
+    /// Counts and regime.
+    pub report: StepReport,
+    /// Bracket diagnostics ([`EnsemblerOptions::bracket_diagnostics`], and a clean candidate).
+    pub bracket: Option<BracketReport>,
+}
+
+/// Construction options of a [`TemporalEnsembler`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct EnsemblerOptions {
+    /// Ring capacity in chunks. Default (`None`): `t_p - t_o + 2`, one span plus one, which
+    /// holds every live chunk as long as each chunk is inserted at most one control step
+    /// after the last action served (the usual loop: insert at `tau`, then ask for `tau`).
+    /// Raise it to insert chunks further ahead; it must be at least one span.
+    pub capacity: Option<usize>,
+    /// Compute [`BracketReport`]s at every step (`O(M^2 d)` extra; evaluation only).
+    pub bracket_diagnostics: bool,
+}
+
+/// Streaming temporal ensembler.
+///
+/// Insert each query's chunk with the **absolute control time** its query fired
+/// ([`insert`](Self::insert)); ask for the action at each control time
+/// ([`action`](Self::action)). Strides may vary, queries may be late or missing: the
+/// candidate of a chunk from time `t` for control time `tau` is its row
+/// `tau - t + t_o - 1`, defined for `0 <= tau - t <= t_p - t_o`.
+///
+/// Memory is fixed at construction (a ring of `capacity` chunks plus scratch); neither
+/// `insert` nor `action` allocates.
+///
+/// ```
+/// use mte_ensemble::{Aggregator, ChunkGeometry, QueryMeta, TemporalEnsembler};
+///
+/// let g = ChunkGeometry::new(4, 1, 2)?; // 4-step chunks, re-queried every 2 steps
+/// let mut ens = TemporalEnsembler::new(g, 1, Aggregator::MEDIAN)?;
+/// ens.insert(0, &[0.0, 1.0, 2.0, 3.0], QueryMeta::CLEAN)?;
+/// assert_eq!(ens.action(0)?.action, &[0.0]);
+/// assert_eq!(ens.action(1)?.action, &[1.0]);
+/// ens.insert(2, &[2.5, 3.5, 4.5, 5.5], QueryMeta::CLEAN)?;
+/// let step = ens.action(2)?; // candidates 2.0 (query 0) and 2.5 (query 2)
+/// assert_eq!(step.action, &[2.25]);
+/// assert_eq!(step.report.m, 2);
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+#[derive(Debug, Clone)]
+pub struct TemporalEnsembler<A: Aggregate = Aggregator> {
+    geometry: ChunkGeometry,
+    dim: usize,
+    span: usize,
+    capacity: usize,
+    aggregator: A,
+    bracket_diagnostics: bool,
+    // Ring of chunks: slot s holds `span` executable rows of `dim` values.
+    rows: Vec<f32>,
+    times: Vec<u64>,
+    metas: Vec<QueryMeta>,
+    head: usize,
+    len: usize,
+    last_query: Option<u64>,
+    /// Latest control time served; no earlier one may be asked for.
+    cursor: Option<u64>,
+    // Per-step scratch.
+    cand: Vec<f32>,
+    cand_corrupted: Vec<bool>,
+    out: Vec<f32>,
+    workspace: Workspace,
+}
+
+impl<A: Aggregate> TemporalEnsembler<A> {
+    /// An ensembler for chunks of `geometry` with `dim` action coordinates.
+    pub fn new(geometry: ChunkGeometry, dim: usize, aggregator: A) -> Result<Self, EnsembleError> {
+        Self::with_options(geometry, dim, aggregator, EnsemblerOptions::default())
+    }
+
+    /// An ensembler with explicit [`EnsemblerOptions`].
+    pub fn with_options(
+        geometry: ChunkGeometry,
+        dim: usize,
+        aggregator: A,
+        options: EnsemblerOptions,
+    ) -> Result<Self, EnsembleError> {
+        geometry.validate().map_err(EnsembleError::Geometry)?;
+        if dim == 0 {
+            return Err(EnsembleError::ZeroDimension);
+        }
+        let span = geometry.span();
+        let capacity = options.capacity.unwrap_or(span + 1);
+        if capacity < span {
+            return Err(EnsembleError::CapacityTooSmall { capacity, span });
+        }
+        Ok(Self {
+            geometry,
+            dim,
+            span,
+            capacity,
+            aggregator,
+            bracket_diagnostics: options.bracket_diagnostics,
+            rows: vec![0.0; capacity * span * dim],
+            times: vec![0; capacity],
+            metas: vec![QueryMeta::default(); capacity],
+            head: 0,
+            len: 0,
+            last_query: None,
+            cursor: None,
+            cand: vec![0.0; capacity * dim],
+            cand_corrupted: vec![false; capacity],
+            out: vec![0.0; dim],
+            workspace: Workspace::new(capacity, dim),
+        })
+    }
+
+    /// The geometry chunks are interpreted with.
+    pub fn geometry(&self) -> ChunkGeometry {
+        self.geometry
+    }
+
+    /// Action dimension `d`.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// The aggregator.
+    pub fn aggregator(&self) -> &A {
+        &self.aggregator
+    }
+
+    /// Chunks currently held.
+    pub fn live_chunks(&self) -> usize {
+        self.len
+    }
+
+    /// Forgets every chunk and the time cursor, for a new episode. Does not allocate.
+    pub fn reset(&mut self) {
+        self.head = 0;
+        self.len = 0;
+        self.last_query = None;
+        self.cursor = None;
+    }
+
+    /// Drops chunks that cannot cover any control time from `tau` on.
+    fn evict_before(&mut self, tau: u64) {
+        let reach = (self.span - 1) as u64;
+        while self.len > 0 && self.times[self.head] + reach < tau {
+            self.head = (self.head + 1) % self.capacity;
+            self.len -= 1;
+        }
+    }
+
+    /// Inserts the chunk of the query that fired at control time `t_query`: `t_p x d`
+    /// values, row-major, row `r` being the action for time `t_query - (t_o - 1) + r`.
+    ///
+    /// Query times must strictly increase. A chunk that could only cover control times
+    /// already served is refused ([`EnsembleError::StaleChunk`]) rather than dropped silently.
+    pub fn insert(
+        &mut self,
+        t_query: u64,
+        chunk: &[f32],
+        meta: QueryMeta,
+    ) -> Result<(), EnsembleError> {
+        let expected = self.geometry.t_p * self.dim;
+        if chunk.len() != expected {
+            return Err(EnsembleError::ChunkShape {
+                expected,
+                got: chunk.len(),
+                t_p: self.geometry.t_p,
+                dim: self.dim,
+            });
+        }
+        if let Some(last) = self.last_query.filter(|&last| t_query <= last) {
+            return Err(EnsembleError::NonMonotonicQuery { t_query, last });
+        }
+        let last_covered = t_query + (self.span - 1) as u64;
+        if let Some(cursor) = self.cursor.filter(|&c| last_covered < c) {
+            return Err(EnsembleError::StaleChunk { t_query, last_covered, cursor });
+        }
+        if let Some(cursor) = self.cursor {
+            self.evict_before(cursor);
+        }
+        if self.len == self.capacity {
+            return Err(EnsembleError::Full { capacity: self.capacity });
+        }
+        let slot = (self.head + self.len) % self.capacity;
+        let width = self.span * self.dim;
+        let first = self.geometry.first_executable_row() * self.dim;
+        self.rows[slot * width..(slot + 1) * width].copy_from_slice(&chunk[first..]);
+        self.times[slot] = t_query;
+        self.metas[slot] = meta;
+        self.len += 1;
+        self.last_query = Some(t_query);
+        Ok(())
+    }
+
+    /// The aggregated action for control time `tau`, borrowed until the next call.
+    pub fn action(&mut self, tau: u64) -> Result<Step<'_>, EnsembleError> {
+        let (report, bracket) = self.compute(tau)?;
+        Ok(Step { action: &self.out, report, bracket })
+    }
+
+    /// Like [`action`](Self::action), writing the action into `out` (`d` coordinates).
+    pub fn action_into(&mut self, tau: u64, out: &mut [f32]) -> Result<StepReport, EnsembleError> {
+        let (report, _) = self.compute(tau)?;
+        out.copy_from_slice(&self.out);
+        Ok(report)
+    }
+
+    fn compute(&mut self, tau: u64) -> Result<(StepReport, Option<BracketReport>), EnsembleError> {
+        if let Some(cursor) = self.cursor.filter(|&c| tau < c) {
+            return Err(EnsembleError::TimeWentBackwards { tau, cursor });
+        }
+        self.cursor = Some(tau);
+        self.evict_before(tau);
+        let d = self.dim;
+        let width = self.span * d;
+        let (mut m, mut q, mut used, mut excluded, mut excluded_corrupted) = (0, 0, 0, 0, 0);
+        let (mut oldest, mut newest) = (0, 0);
+        for k in 0..self.len {
+            let slot = (self.head + k) % self.capacity;
+            let t = self.times[slot];
+            if t > tau {
+                break; // chunks are in query order: the rest are for later
+            }
+            let offset = (tau - t) as usize;
+            debug_assert!(offset < self.span);
+            let row = &self.rows[slot * width + offset * d..slot * width + (offset + 1) * d];
+            let corrupted = self.metas[slot].corrupted;
+            if m == 0 {
+                oldest = t;
+            }
+            newest = t;
+            m += 1;
+            q += usize::from(corrupted);
+            if row.iter().all(|v| v.is_finite()) {
+                self.cand[used * d..(used + 1) * d].copy_from_slice(row);
+                self.cand_corrupted[used] = corrupted;
+                used += 1;
+            } else {
+                excluded += 1;
+                excluded_corrupted += usize::from(corrupted);
+            }
+        }
+        if m == 0 {
+            let earliest = tau.saturating_sub((self.span - 1) as u64);
+            return Err(EnsembleError::NoCandidates { tau, earliest });
+        }
+        if used == 0 {
+            return Err(EnsembleError::NoFiniteCandidates { tau, excluded });
+        }
+        let cands = Candidates::from_checked(&self.cand[..used * d], d);
+        self.aggregator.aggregate(&cands, &mut self.workspace, &mut self.out)?;
+        let report = StepReport {
+            tau,
+            m,
+            q,
+            excluded,
+            excluded_corrupted,
+            regime: Regime::of(q - excluded_corrupted, used),
+            oldest_query: oldest,
+            newest_query: newest,
+        };
+        let bracket = if self.bracket_diagnostics {
+            bracket::diagnose(&cands, &self.cand_corrupted[..used], &self.out)
+        } else {
+            None
+        };
+        Ok((report, bracket))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::error::GeometryError;
+
+    fn ramp(t: u64, t_p: usize, t_o: usize) -> Vec<f32> {
+        // Row r is the action for time t - (t_o - 1) + r; value = that time + query offset.
+        (0..t_p).map(|r| (t as f32 - (t_o as f32 - 1.0) + r as f32) + t as f32 * 0.001).collect()
+    }
+
+    #[test]
+    fn candidates_come_from_the_right_rows() {
+        let g = ChunkGeometry::new(16, 2, 2).unwrap();
+        let mut e = TemporalEnsembler::new(g, 1, Aggregator::Latest).unwrap();
+        for i in 0..60u64 {
+            let t = 2 * i;
+            e.insert(t, &ramp(t, 16, 2), QueryMeta::CLEAN).unwrap();
+            for tau in [t, t + 1] {
+                let step = e.action(tau).unwrap();
+                // Latest = the query at t, whose row for tau encodes tau.
+                assert!((step.action[0] - (tau as f32 + t as f32 * 0.001)).abs() < 1e-3);
+                if tau >= 16 {
+                    assert_eq!(step.report.m, g.m_at(tau), "tau {tau}");
+                }
+            }
+        }
+        assert_eq!(e.action(101).map(|s| s.report.m), Err(EnsembleError::TimeWentBackwards {
+            tau: 101,
+            cursor: 119
+        }));
+    }
+
+    #[test]
+    fn worked_example_counts_at_100_and_101() {
+        let g = ChunkGeometry::new(16, 2, 2).unwrap();
+        let mut e = TemporalEnsembler::new(g, 1, Aggregator::MEDIAN).unwrap();
+        for t in (0..=100).step_by(2) {
+            e.insert(t, &ramp(t, 16, 2), QueryMeta::CLEAN).unwrap();
+            if t < 100 {
+                e.action(t).unwrap();
+            }
+        }
+        let s = e.action(100).unwrap().report;
+        assert_eq!((s.m, s.oldest_query, s.newest_query), (8, 86, 100));
+        let s = e.action(101).unwrap().report;
+        assert_eq!((s.m, s.oldest_query, s.newest_query), (7, 88, 100));
+    }
+
+    #[test]
+    fn late_and_missing_queries_are_handled_by_time() {
+        let g = ChunkGeometry::new(6, 1, 2).unwrap();
+        let mut e = TemporalEnsembler::new(g, 1, Aggregator::Mean).unwrap();
+        e.insert(0, &[0.0; 6], QueryMeta::CLEAN).unwrap();
+        e.action(0).unwrap();
+        e.action(1).unwrap();
+        e.action(2).unwrap(); // query at 2 is late
+        e.insert(3, &[1.0; 6], QueryMeta::CLEAN).unwrap();
+        let s = e.action(3).unwrap();
+        assert_eq!((s.report.m, s.action[0]), (2, 0.5));
+        // Query at 5 missing; 9 uncovered by the chunk from 3 (covers 3..=8).
+        assert_eq!(e.action(8).unwrap().report.m, 1);
+        assert_eq!(
+            e.action(9).map(|s| s.report.m),
+            Err(EnsembleError::NoCandidates { tau: 9, earliest: 4 })
+        );
+    }
+
+    #[test]
+    fn bad_calls_are_typed_errors() {
+        let g = ChunkGeometry::new(4, 1, 1).unwrap();
+        assert_eq!(
+            TemporalEnsembler::new(g, 0, Aggregator::MEDIAN).unwrap_err(),
+            EnsembleError::ZeroDimension
+        );
+        let bad = ChunkGeometry { t_p: 4, t_o: 0, h: 1 };
+        assert_eq!(
+            TemporalEnsembler::new(bad, 1, Aggregator::MEDIAN).unwrap_err(),
+            EnsembleError::Geometry(GeometryError::ZeroObservationSteps)
+        );
+        let mut e = TemporalEnsembler::new(g, 2, Aggregator::MEDIAN).unwrap();
+        assert_eq!(
+            e.insert(0, &[0.0; 7], QueryMeta::CLEAN),
+            Err(EnsembleError::ChunkShape { expected: 8, got: 7, t_p: 4, dim: 2 })
+        );
+        e.insert(5, &[0.0; 8], QueryMeta::CLEAN).unwrap();
+        assert_eq!(
+            e.insert(5, &[0.0; 8], QueryMeta::CLEAN),
+            Err(EnsembleError::NonMonotonicQuery { t_query: 5, last: 5 })
+        );
+        e.action(20).unwrap_err();
+        assert_eq!(
+            e.insert(10, &[0.0; 8], QueryMeta::CLEAN),
+            Err(EnsembleError::StaleChunk { t_query: 10, last_covered: 13, cursor: 20 })
+        );
+    }
+
+    #[test]
+    fn capacity_bounds_chunks_inserted_ahead() {
+        let g = ChunkGeometry::new(3, 1, 1).unwrap();
+        let mut e = TemporalEnsembler::new(g, 1, Aggregator::Mean).unwrap();
+        for t in 0..4 {
+            e.insert(t, &[0.0; 3], QueryMeta::CLEAN).unwrap();
+        }
+        assert_eq!(e.insert(4, &[0.0; 3], QueryMeta::CLEAN), Err(EnsembleError::Full {
+            capacity: 4
+        }));
+        assert_eq!(e.action(2).unwrap().report.m, 3); // chunk 0 covers 0..=2, still live
+        assert_eq!(e.action(3).unwrap().report.m, 3); // evicts chunk 0
+        e.insert(4, &[0.0; 3], QueryMeta::CLEAN).unwrap();
+        let opts = EnsemblerOptions { capacity: Some(2), ..Default::default() };
+        assert_eq!(
+            TemporalEnsembler::with_options(g, 1, Aggregator::Mean, opts).unwrap_err(),
+            EnsembleError::CapacityTooSmall { capacity: 2, span: 3 }
+        );
+    }
+
+    #[test]
+    fn non_finite_candidates_are_excluded_and_counted() {
+        let g = ChunkGeometry::new(3, 1, 1).unwrap();
+        let mut e = TemporalEnsembler::new(g, 1, Aggregator::MEDIAN).unwrap();
+        e.insert(0, &[1.0, 1.0, 1.0], QueryMeta::CLEAN).unwrap();
+        e.insert(1, &[f32::NAN, f32::NAN, 9.0], QueryMeta::CORRUPTED).unwrap();
+        e.insert(2, &[3.0, f32::INFINITY, 3.0], QueryMeta::CLEAN).unwrap();
+        let s = e.action(2).unwrap();
+        assert_eq!(s.action, &[2.0]);
+        assert_eq!((s.report.m, s.report.q, s.report.excluded), (3, 1, 1));
+        assert_eq!(s.report.excluded_corrupted, 1);
+        assert_eq!(s.report.regime, Regime::Guaranteed);
+        assert!(s.action.iter().all(|v| v.is_finite()));
+        let g = ChunkGeometry::new(2, 1, 1).unwrap();
+        let mut e = TemporalEnsembler::new(g, 1, Aggregator::MEDIAN).unwrap();
+        e.insert(0, &[f32::NAN, 0.0], QueryMeta::CLEAN).unwrap();
+        assert_eq!(
+            e.action(0).map(|s| s.report),
+            Err(EnsembleError::NoFiniteCandidates { tau: 0, excluded: 1 })
+        );
+    }
+
+    #[test]
+    fn reset_starts_a_new_episode() {
+        let g = ChunkGeometry::new(3, 1, 1).unwrap();
+        let mut e = TemporalEnsembler::new(g, 1, Aggregator::Mean).unwrap();
+        e.insert(10, &[1.0; 3], QueryMeta::CLEAN).unwrap();
+        e.action(10).unwrap();
+        e.reset();
+        assert_eq!(e.live_chunks(), 0);
+        e.insert(0, &[2.0; 3], QueryMeta::CLEAN).unwrap();
+        assert_eq!(e.action(0).unwrap().action, &[2.0]);
+    }
+
+    #[test]
+    fn regime_boundaries() {
+        assert_eq!(Regime::of(3, 7), Regime::Guaranteed);
+        assert_eq!(Regime::of(4, 8), Regime::Tie);
+        assert_eq!(Regime::of(4, 7), Regime::Exceeded);
+        assert_eq!(Regime::of(0, 1), Regime::Guaranteed);
+        assert_eq!(Regime::Tie.to_string(), "2q=M");
+    }
+}

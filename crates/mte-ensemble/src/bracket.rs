@@ -66,12 +66,21 @@ pub fn diagnose(c: &Candidates<'_>, corrupted: &[bool], out: &[f32]) -> Option<B
         }
     }
     let coincides = (0..n).any(|i| {
-        c.row(i).iter().zip(out).all(|(&v, &x)| (v - x).abs() <= 1e-6 * v.abs().max(1.0))
+        c.row(i)
+            .iter()
+            .zip(out)
+            .all(|(&v, &x)| (v - x).abs() <= 1e-6 * v.abs().max(1.0))
     });
     let dist = |a: &[f32], b: &[f32]| -> f64 {
-        a.iter().zip(b).map(|(&u, &v)| (u as f64 - v as f64).powi(2)).sum::<f64>().sqrt()
+        a.iter()
+            .zip(b)
+            .map(|(&u, &v)| (u as f64 - v as f64).powi(2))
+            .sum::<f64>()
+            .sqrt()
     };
-    let nearest = (0..n).map(|i| dist(c.row(i), out)).fold(f64::INFINITY, f64::min);
+    let nearest = (0..n)
+        .map(|i| dist(c.row(i), out))
+        .fold(f64::INFINITY, f64::min);
     let (mut sum, mut pairs) = (0.0, 0usize);
     for i in 0..n {
         for j in (i + 1)..n {
@@ -288,17 +297,30 @@ mod tests {
             coincides: false,
             nearest_ratio: Some(0.1),
         };
-        let out = BracketReport { outside: true, excess: 2.0, ..inside };
+        let out = BracketReport {
+            outside: true,
+            excess: 2.0,
+            ..inside
+        };
         acc.record(&report(7, 2), &inside);
         acc.record(&report(7, 2), &inside);
         acc.record(&report(8, 4), &out);
-        acc.record(&report(8, 0), &BracketReport { corrupted: 0, ..out });
+        acc.record(
+            &report(8, 0),
+            &BracketReport {
+                corrupted: 0,
+                ..out
+            },
+        );
         let rows = acc.rows();
         assert_eq!(rows.len(), 2);
         assert_eq!(rows[0].regime, Regime::Guaranteed);
         assert_eq!((rows[0].steps, rows[0].outside_pct), (2, 0.0));
         assert_eq!(rows[1].regime, Regime::Tie);
-        assert_eq!((rows[1].steps, rows[1].outside_pct, rows[1].median_excess), (1, 100.0, 2.0));
+        assert_eq!(
+            (rows[1].steps, rows[1].outside_pct, rows[1].median_excess),
+            (1, 100.0, 2.0)
+        );
         let mut twice = acc.clone();
         twice.merge(&acc);
         assert_eq!(twice.rows()[0].steps, 4);

@@ -126,13 +126,34 @@ pub struct Step<'a> {
 /// Construction options of a [`TemporalEnsembler`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct EnsemblerOptions {
-    /// Ring capacity in chunks. Default (`None`): `t_p - t_o + 2`, one span plus one, which
-    /// holds every live chunk as long as each chunk is inserted at most one control step
-    /// after the last action served (the usual loop: insert at `tau`, then ask for `tau`).
-    /// Raise it to insert chunks further ahead; it must be at least one span.
-    pub capacity: Option<usize>,
+    /// How many control steps after the last action served a query may be inserted.
+    /// Default (`None`): the stride `h`, enough for a loop that asks for every control time
+    /// or only for the query times. The ring holds `span + lookahead` chunks.
+    pub lookahead: Option<usize>,
     /// Compute [`BracketReport`]s at every step (`O(M^2 d)` extra; evaluation only).
     pub bracket_diagnostics: bool,
+}
+
+/// SIMD width the candidate rows are padded to (4 f32 lanes: one SSE register).
+const LANES: usize = 4;
+
+/// One live chunk's bookkeeping.
+#[derive(Debug, Clone, Copy, Default)]
+struct ChunkSlot {
+    t_query: u64,
+    corrupted: bool,
+    /// Whether every executable value is finite (else see `row_finite`).
+    finite: bool,
+}
+
+/// Whether every value is finite, without an early exit so that it vectorises.
+#[inline]
+fn all_finite(values: &[f32]) -> bool {
+    const EXP: u32 = 0x7f80_0000; // an all-ones exponent is infinity or NaN
+    values
+        .iter()
+        .fold(0u32, |acc, v| acc | u32::from(v.to_bits() & EXP == EXP))
+        == 0
 }
 
 /// Streaming temporal ensembler.
@@ -143,8 +164,7 @@ pub struct EnsemblerOptions {
 /// candidate of a chunk from time `t` for control time `tau` is its row
 /// `tau - t + t_o - 1`, defined for `0 <= tau - t <= t_p - t_o`.
 ///
-/// Memory is fixed at construction (a ring of `capacity` chunks plus scratch); neither
-/// `insert` nor `action` allocates.
+/// Memory is fixed at construction; neither `insert` nor `action` allocates.
 ///
 /// ```
 /// use mte_ensemble::{Aggregator, ChunkGeometry, QueryMeta, TemporalEnsembler};
@@ -160,24 +180,37 @@ pub struct EnsemblerOptions {
 /// assert_eq!(step.report.m, 2);
 /// # Ok::<(), Box<dyn std::error::Error>>(())
 /// ```
+///
+/// ## Layout
+///
+/// A ring of `span + lookahead` chunk slots (`span = t_p - t_o + 1`), in query order, holds
+/// the executable rows of each live chunk as one block (one copy per insertion). `action`
+/// walks the live chunks oldest first and copies row `tau - t` of each into a candidate
+/// matrix whose rows are padded to 4 lanes, so the median's comparator network runs on
+/// packed SIMD registers. Rows of 1 to 8, 10 and 14 coordinates are copied by code
+/// specialised for that width.
 #[derive(Debug, Clone)]
 pub struct TemporalEnsembler<A: Aggregate = Aggregator> {
     geometry: ChunkGeometry,
     dim: usize,
+    /// Row stride of the candidate matrix: `dim` rounded up to [`LANES`].
+    stride: usize,
     span: usize,
     capacity: usize,
+    lookahead: usize,
     aggregator: A,
     bracket_diagnostics: bool,
-    // Ring of chunks: slot s holds `span` executable rows of `dim` values.
+    /// `capacity * span * dim` values: slot `s`, executable row `r`, coordinate `j`.
     rows: Vec<f32>,
-    times: Vec<u64>,
-    metas: Vec<QueryMeta>,
+    slots: Vec<ChunkSlot>,
+    /// `capacity * span` per-row finiteness, filled only for chunks that are not all finite.
+    row_finite: Vec<bool>,
     head: usize,
     len: usize,
     last_query: Option<u64>,
     /// Latest control time served; no earlier one may be asked for.
     cursor: Option<u64>,
-    // Per-step scratch.
+    // Per-step scratch: the candidate matrix, its flags, the output.
     cand: Vec<f32>,
     cand_corrupted: Vec<bool>,
     out: Vec<f32>,
@@ -202,28 +235,29 @@ impl<A: Aggregate> TemporalEnsembler<A> {
             return Err(EnsembleError::ZeroDimension);
         }
         let span = geometry.span();
-        let capacity = options.capacity.unwrap_or(span + 1);
-        if capacity < span {
-            return Err(EnsembleError::CapacityTooSmall { capacity, span });
-        }
+        let lookahead = options.lookahead.unwrap_or(geometry.h).max(1);
+        let capacity = span + lookahead;
+        let stride = dim.div_ceil(LANES) * LANES;
         Ok(Self {
             geometry,
             dim,
+            stride,
             span,
             capacity,
+            lookahead,
             aggregator,
             bracket_diagnostics: options.bracket_diagnostics,
             rows: vec![0.0; capacity * span * dim],
-            times: vec![0; capacity],
-            metas: vec![QueryMeta::default(); capacity],
+            slots: vec![ChunkSlot::default(); capacity],
+            row_finite: vec![true; capacity * span],
             head: 0,
             len: 0,
             last_query: None,
             cursor: None,
-            cand: vec![0.0; capacity * dim],
-            cand_corrupted: vec![false; capacity],
+            cand: vec![0.0; span * stride],
+            cand_corrupted: vec![false; span],
             out: vec![0.0; dim],
-            workspace: Workspace::new(capacity, dim),
+            workspace: Workspace::new(span, stride),
         })
     }
 
@@ -242,6 +276,11 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         &self.aggregator
     }
 
+    /// Control steps after the last action served that a query may still be inserted.
+    pub fn lookahead(&self) -> usize {
+        self.lookahead
+    }
+
     /// Chunks currently held.
     pub fn live_chunks(&self) -> usize {
         self.len
@@ -255,11 +294,22 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         self.cursor = None;
     }
 
+    /// `i mod capacity` for `i < 2 * capacity`, without a division (this is the hot path).
+    #[inline]
+    fn wrap(&self, i: usize) -> usize {
+        if i >= self.capacity {
+            i - self.capacity
+        } else {
+            i
+        }
+    }
+
     /// Drops chunks that cannot cover any control time from `tau` on.
+    #[inline]
     fn evict_before(&mut self, tau: u64) {
         let reach = (self.span - 1) as u64;
-        while self.len > 0 && self.times[self.head] + reach < tau {
-            self.head = (self.head + 1) % self.capacity;
+        while self.len > 0 && self.slots[self.head].t_query + reach < tau {
+            self.head = self.wrap(self.head + 1);
             self.len -= 1;
         }
     }
@@ -268,41 +318,74 @@ impl<A: Aggregate> TemporalEnsembler<A> {
     /// values, row-major, row `r` being the action for time `t_query - (t_o - 1) + r`.
     ///
     /// Query times must strictly increase. A chunk that could only cover control times
-    /// already served is refused ([`EnsembleError::StaleChunk`]) rather than dropped silently.
+    /// already served is refused ([`EnsembleError::StaleChunk`]) rather than dropped
+    /// silently, and so is one inserted more than [`lookahead`](Self::lookahead) steps
+    /// after the last action served ([`EnsembleError::TooFarAhead`]).
     pub fn insert(
         &mut self,
         t_query: u64,
         chunk: &[f32],
         meta: QueryMeta,
     ) -> Result<(), EnsembleError> {
-        let expected = self.geometry.t_p * self.dim;
+        let (d, span) = (self.dim, self.span);
+        let expected = self.geometry.t_p * d;
         if chunk.len() != expected {
             return Err(EnsembleError::ChunkShape {
                 expected,
                 got: chunk.len(),
                 t_p: self.geometry.t_p,
-                dim: self.dim,
+                dim: d,
             });
         }
         if let Some(last) = self.last_query.filter(|&last| t_query <= last) {
             return Err(EnsembleError::NonMonotonicQuery { t_query, last });
         }
-        let last_covered = t_query + (self.span - 1) as u64;
-        if let Some(cursor) = self.cursor.filter(|&c| last_covered < c) {
-            return Err(EnsembleError::StaleChunk { t_query, last_covered, cursor });
-        }
+        let last_covered = t_query + (span - 1) as u64;
         if let Some(cursor) = self.cursor {
+            if last_covered < cursor {
+                return Err(EnsembleError::StaleChunk {
+                    t_query,
+                    last_covered,
+                    cursor,
+                });
+            }
+            if t_query > cursor + self.lookahead as u64 {
+                return Err(EnsembleError::TooFarAhead {
+                    t_query,
+                    floor: cursor,
+                    lookahead: self.lookahead,
+                });
+            }
             self.evict_before(cursor);
         }
         if self.len == self.capacity {
-            return Err(EnsembleError::Full { capacity: self.capacity });
+            // Only reachable before the first action: every slot holds a chunk that may
+            // still be asked for.
+            let floor = self.slots[self.head].t_query;
+            return Err(EnsembleError::TooFarAhead {
+                t_query,
+                floor,
+                lookahead: self.lookahead,
+            });
         }
-        let slot = (self.head + self.len) % self.capacity;
-        let width = self.span * self.dim;
-        let first = self.geometry.first_executable_row() * self.dim;
-        self.rows[slot * width..(slot + 1) * width].copy_from_slice(&chunk[first..]);
-        self.times[slot] = t_query;
-        self.metas[slot] = meta;
+        let slot = self.wrap(self.head + self.len);
+        let executable = &chunk[self.geometry.first_executable_row() * d..];
+        let width = span * d;
+        self.rows[slot * width..(slot + 1) * width].copy_from_slice(executable);
+        let finite = all_finite(executable);
+        if !finite {
+            for (flag, row) in self.row_finite[slot * span..(slot + 1) * span]
+                .iter_mut()
+                .zip(executable.chunks_exact(d))
+            {
+                *flag = all_finite(row);
+            }
+        }
+        self.slots[slot] = ChunkSlot {
+            t_query,
+            corrupted: meta.corrupted,
+            finite,
+        };
         self.len += 1;
         self.last_query = Some(t_query);
         Ok(())
@@ -311,7 +394,11 @@ impl<A: Aggregate> TemporalEnsembler<A> {
     /// The aggregated action for control time `tau`, borrowed until the next call.
     pub fn action(&mut self, tau: u64) -> Result<Step<'_>, EnsembleError> {
         let (report, bracket) = self.compute(tau)?;
-        Ok(Step { action: &self.out, report, bracket })
+        Ok(Step {
+            action: &self.out,
+            report,
+            bracket,
+        })
     }
 
     /// Like [`action`](Self::action), writing the action into `out` (`d` coordinates).
@@ -327,61 +414,103 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         }
         self.cursor = Some(tau);
         self.evict_before(tau);
-        let d = self.dim;
-        let width = self.span * d;
-        let (mut m, mut q, mut used, mut excluded, mut excluded_corrupted) = (0, 0, 0, 0, 0);
-        let (mut oldest, mut newest) = (0, 0);
-        for k in 0..self.len {
-            let slot = (self.head + k) % self.capacity;
-            let t = self.times[slot];
-            if t > tau {
-                break; // chunks are in query order: the rest are for later
-            }
-            let offset = (tau - t) as usize;
-            debug_assert!(offset < self.span);
-            let row = &self.rows[slot * width + offset * d..slot * width + (offset + 1) * d];
-            let corrupted = self.metas[slot].corrupted;
-            if m == 0 {
-                oldest = t;
-            }
-            newest = t;
-            m += 1;
-            q += usize::from(corrupted);
-            if row.iter().all(|v| v.is_finite()) {
-                self.cand[used * d..(used + 1) * d].copy_from_slice(row);
-                self.cand_corrupted[used] = corrupted;
-                used += 1;
-            } else {
-                excluded += 1;
-                excluded_corrupted += usize::from(corrupted);
-            }
-        }
-        if m == 0 {
+        let g = match self.dim {
+            1 => self.gather::<1>(tau),
+            2 => self.gather::<2>(tau),
+            3 => self.gather::<3>(tau),
+            4 => self.gather::<4>(tau),
+            5 => self.gather::<5>(tau),
+            6 => self.gather::<6>(tau),
+            7 => self.gather::<7>(tau),
+            8 => self.gather::<8>(tau),
+            10 => self.gather::<10>(tau),
+            14 => self.gather::<14>(tau),
+            _ => self.gather::<0>(tau),
+        };
+        if g.m == 0 {
             let earliest = tau.saturating_sub((self.span - 1) as u64);
             return Err(EnsembleError::NoCandidates { tau, earliest });
         }
-        if used == 0 {
-            return Err(EnsembleError::NoFiniteCandidates { tau, excluded });
+        if g.used == 0 {
+            return Err(EnsembleError::NoFiniteCandidates { tau, excluded: g.m });
         }
-        let cands = Candidates::from_checked(&self.cand[..used * d], d);
-        self.aggregator.aggregate(&cands, &mut self.workspace, &mut self.out)?;
+        let cands =
+            Candidates::from_checked(&self.cand[..g.used * self.stride], self.dim, self.stride);
+        self.aggregator
+            .aggregate(&cands, &mut self.workspace, &mut self.out)?;
         let report = StepReport {
             tau,
-            m,
-            q,
-            excluded,
-            excluded_corrupted,
-            regime: Regime::of(q - excluded_corrupted, used),
-            oldest_query: oldest,
-            newest_query: newest,
+            m: g.m,
+            q: g.q,
+            excluded: g.m - g.used,
+            excluded_corrupted: g.excluded_corrupted,
+            regime: Regime::of(g.q - g.excluded_corrupted, g.used),
+            oldest_query: g.oldest,
+            newest_query: g.newest,
         };
         let bracket = if self.bracket_diagnostics {
-            bracket::diagnose(&cands, &self.cand_corrupted[..used], &self.out)
+            bracket::diagnose(&cands, &self.cand_corrupted[..g.used], &self.out)
         } else {
             None
         };
         Ok((report, bracket))
     }
+
+    /// Copies the finite candidates for `tau` into `cand` (rows padded to `stride`), oldest
+    /// first, and counts them. `D` is the action dimension when known at compile time, so
+    /// that the row copy is a few moves instead of a `memcpy` call, or 0 for any dimension.
+    #[inline]
+    fn gather<const D: usize>(&mut self, tau: u64) -> Gathered {
+        let (d, stride, span) = (self.dim, self.stride, self.span);
+        debug_assert!(D == 0 || D == d);
+        let width = span * d;
+        let mut g = Gathered::default();
+        // The live chunks are slots head.. (wrapping), in query order; those with a query
+        // time after `tau` come last and are not candidates yet.
+        let mut slot = self.head;
+        for k in 0..self.len {
+            if k > 0 {
+                slot = self.wrap(slot + 1);
+            }
+            let meta = self.slots[slot];
+            if meta.t_query > tau {
+                break;
+            }
+            let offset = (tau - meta.t_query) as usize;
+            debug_assert!(offset < span);
+            if g.m == 0 {
+                g.oldest = meta.t_query;
+            }
+            g.newest = meta.t_query;
+            g.m += 1;
+            g.q += usize::from(meta.corrupted);
+            if !meta.finite && !self.row_finite[slot * span + offset] {
+                g.excluded_corrupted += usize::from(meta.corrupted);
+                continue;
+            }
+            let src = slot * width + offset * d;
+            let dst = g.used * stride;
+            if D > 0 {
+                self.cand[dst..dst + D].copy_from_slice(&self.rows[src..src + D]);
+            } else {
+                self.cand[dst..dst + d].copy_from_slice(&self.rows[src..src + d]);
+            }
+            self.cand_corrupted[g.used] = meta.corrupted;
+            g.used += 1;
+        }
+        g
+    }
+}
+
+/// Counts from one gather.
+#[derive(Debug, Clone, Copy, Default)]
+struct Gathered {
+    m: usize,
+    q: usize,
+    used: usize,
+    excluded_corrupted: usize,
+    oldest: u64,
+    newest: u64,
 }
 
 #[cfg(test)]
@@ -391,7 +520,9 @@ mod tests {
 
     fn ramp(t: u64, t_p: usize, t_o: usize) -> Vec<f32> {
         // Row r is the action for time t - (t_o - 1) + r; value = that time + query offset.
-        (0..t_p).map(|r| (t as f32 - (t_o as f32 - 1.0) + r as f32) + t as f32 * 0.001).collect()
+        (0..t_p)
+            .map(|r| (t as f32 - (t_o as f32 - 1.0) + r as f32) + t as f32 * 0.001)
+            .collect()
     }
 
     #[test]
@@ -410,10 +541,13 @@ mod tests {
                 }
             }
         }
-        assert_eq!(e.action(101).map(|s| s.report.m), Err(EnsembleError::TimeWentBackwards {
-            tau: 101,
-            cursor: 119
-        }));
+        assert_eq!(
+            e.action(101).map(|s| s.report.m),
+            Err(EnsembleError::TimeWentBackwards {
+                tau: 101,
+                cursor: 119
+            })
+        );
     }
 
     #[test]
@@ -447,7 +581,10 @@ mod tests {
         assert_eq!(e.action(8).unwrap().report.m, 1);
         assert_eq!(
             e.action(9).map(|s| s.report.m),
-            Err(EnsembleError::NoCandidates { tau: 9, earliest: 4 })
+            Err(EnsembleError::NoCandidates {
+                tau: 9,
+                earliest: 4
+            })
         );
     }
 
@@ -458,7 +595,11 @@ mod tests {
             TemporalEnsembler::new(g, 0, Aggregator::MEDIAN).unwrap_err(),
             EnsembleError::ZeroDimension
         );
-        let bad = ChunkGeometry { t_p: 4, t_o: 0, h: 1 };
+        let bad = ChunkGeometry {
+            t_p: 4,
+            t_o: 0,
+            h: 1,
+        };
         assert_eq!(
             TemporalEnsembler::new(bad, 1, Aggregator::MEDIAN).unwrap_err(),
             EnsembleError::Geometry(GeometryError::ZeroObservationSteps)
@@ -466,47 +607,88 @@ mod tests {
         let mut e = TemporalEnsembler::new(g, 2, Aggregator::MEDIAN).unwrap();
         assert_eq!(
             e.insert(0, &[0.0; 7], QueryMeta::CLEAN),
-            Err(EnsembleError::ChunkShape { expected: 8, got: 7, t_p: 4, dim: 2 })
+            Err(EnsembleError::ChunkShape {
+                expected: 8,
+                got: 7,
+                t_p: 4,
+                dim: 2
+            })
         );
         e.insert(5, &[0.0; 8], QueryMeta::CLEAN).unwrap();
         assert_eq!(
             e.insert(5, &[0.0; 8], QueryMeta::CLEAN),
-            Err(EnsembleError::NonMonotonicQuery { t_query: 5, last: 5 })
+            Err(EnsembleError::NonMonotonicQuery {
+                t_query: 5,
+                last: 5
+            })
         );
         e.action(20).unwrap_err();
         assert_eq!(
             e.insert(10, &[0.0; 8], QueryMeta::CLEAN),
-            Err(EnsembleError::StaleChunk { t_query: 10, last_covered: 13, cursor: 20 })
+            Err(EnsembleError::StaleChunk {
+                t_query: 10,
+                last_covered: 13,
+                cursor: 20
+            })
         );
     }
 
     #[test]
-    fn capacity_bounds_chunks_inserted_ahead() {
+    fn lookahead_bounds_chunks_inserted_ahead() {
         let g = ChunkGeometry::new(3, 1, 1).unwrap();
         let mut e = TemporalEnsembler::new(g, 1, Aggregator::Mean).unwrap();
+        // span 3 + lookahead 1 (= h) = 4 slots.
+        assert_eq!(e.lookahead(), 1);
         for t in 0..4 {
-            e.insert(t, &[0.0; 3], QueryMeta::CLEAN).unwrap();
+            e.insert(t, &[t as f32; 3], QueryMeta::CLEAN).unwrap();
         }
-        assert_eq!(e.insert(4, &[0.0; 3], QueryMeta::CLEAN), Err(EnsembleError::Full {
-            capacity: 4
-        }));
-        assert_eq!(e.action(2).unwrap().report.m, 3); // chunk 0 covers 0..=2, still live
-        assert_eq!(e.action(3).unwrap().report.m, 3); // evicts chunk 0
-        e.insert(4, &[0.0; 3], QueryMeta::CLEAN).unwrap();
-        let opts = EnsemblerOptions { capacity: Some(2), ..Default::default() };
         assert_eq!(
-            TemporalEnsembler::with_options(g, 1, Aggregator::Mean, opts).unwrap_err(),
-            EnsembleError::CapacityTooSmall { capacity: 2, span: 3 }
+            e.insert(4, &[0.0; 3], QueryMeta::CLEAN),
+            Err(EnsembleError::TooFarAhead {
+                t_query: 4,
+                floor: 0,
+                lookahead: 1
+            })
         );
+        assert_eq!(e.action(2).unwrap().report.m, 3);
+        assert_eq!(
+            e.insert(4, &[0.0; 3], QueryMeta::CLEAN),
+            Err(EnsembleError::TooFarAhead {
+                t_query: 4,
+                floor: 2,
+                lookahead: 1
+            })
+        );
+        e.action(3).unwrap();
+        e.insert(4, &[4.0; 3], QueryMeta::CLEAN).unwrap();
+        let s = e.action(4).unwrap();
+        assert_eq!((s.report.m, s.action[0]), (3, 3.0));
+        let opts = EnsemblerOptions {
+            lookahead: Some(5),
+            ..Default::default()
+        };
+        let mut e = TemporalEnsembler::with_options(g, 1, Aggregator::Mean, opts).unwrap();
+        assert_eq!(e.lookahead(), 5);
+        for t in 0..6 {
+            e.insert(t, &[t as f32; 3], QueryMeta::CLEAN).unwrap();
+        }
+        assert_eq!(e.action(2).unwrap().action, &[1.0]);
+        assert_eq!(e.action(5).unwrap().action, &[4.0]);
     }
 
     #[test]
     fn non_finite_candidates_are_excluded_and_counted() {
         let g = ChunkGeometry::new(3, 1, 1).unwrap();
-        let mut e = TemporalEnsembler::new(g, 1, Aggregator::MEDIAN).unwrap();
+        let opts = EnsemblerOptions {
+            lookahead: Some(2),
+            ..Default::default()
+        };
+        let mut e = TemporalEnsembler::with_options(g, 1, Aggregator::MEDIAN, opts).unwrap();
         e.insert(0, &[1.0, 1.0, 1.0], QueryMeta::CLEAN).unwrap();
-        e.insert(1, &[f32::NAN, f32::NAN, 9.0], QueryMeta::CORRUPTED).unwrap();
-        e.insert(2, &[3.0, f32::INFINITY, 3.0], QueryMeta::CLEAN).unwrap();
+        e.insert(1, &[f32::NAN, f32::NAN, 9.0], QueryMeta::CORRUPTED)
+            .unwrap();
+        e.insert(2, &[3.0, f32::INFINITY, 3.0], QueryMeta::CLEAN)
+            .unwrap();
         let s = e.action(2).unwrap();
         assert_eq!(s.action, &[2.0]);
         assert_eq!((s.report.m, s.report.q, s.report.excluded), (3, 1, 1));
@@ -518,7 +700,10 @@ mod tests {
         e.insert(0, &[f32::NAN, 0.0], QueryMeta::CLEAN).unwrap();
         assert_eq!(
             e.action(0).map(|s| s.report),
-            Err(EnsembleError::NoFiniteCandidates { tau: 0, excluded: 1 })
+            Err(EnsembleError::NoFiniteCandidates {
+                tau: 0,
+                excluded: 1
+            })
         );
     }
 

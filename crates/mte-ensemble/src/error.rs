@@ -51,14 +51,6 @@ pub enum EnsembleError {
     /// The action dimension was zero at construction.
     #[error("action dimension d = 0: expected d >= 1")]
     ZeroDimension,
-    /// The ring capacity was smaller than one chunk span.
-    #[error("capacity {capacity} is below the chunk span {span}: expected capacity >= span")]
-    CapacityTooSmall {
-        /// Capacity requested.
-        capacity: usize,
-        /// Control steps one chunk covers, `t_p - t_o + 1`.
-        span: usize,
-    },
     /// An inserted chunk had the wrong number of values.
     #[error(
         "chunk has {got} values, expected t_p x d = {t_p} x {dim} = {expected} (row-major, \
@@ -98,17 +90,25 @@ pub enum EnsembleError {
         /// Earliest control time that may still be asked for.
         cursor: u64,
     },
-    /// Every slot of the ring holds a chunk that may still be needed.
+    /// The chunk was inserted further ahead of the last action served than the lookahead
+    /// the ensembler was built with.
     #[error(
-        "all {capacity} chunk slots are live: ask for actions before inserting more chunks, or \
-         build the ensembler with a larger capacity"
+        "query at {t_query} is more than {lookahead} control steps after {floor}, the earliest \
+         time that may still be asked for: ask for actions first, or build the ensembler \
+         with a larger lookahead"
     )]
-    Full {
-        /// Ring capacity in chunks.
-        capacity: usize,
+    TooFarAhead {
+        /// Query time given.
+        t_query: u64,
+        /// Earliest control time that may still be asked for.
+        floor: u64,
+        /// Lookahead of the ensembler.
+        lookahead: usize,
     },
     /// An action was requested for a control time before one already served.
-    #[error("control time {tau} is before {cursor}, which was already served: time only moves forward")]
+    #[error(
+        "control time {tau} is before {cursor}, which was already served: time only moves forward"
+    )]
     TimeWentBackwards {
         /// Control time asked for.
         tau: u64,

@@ -51,7 +51,10 @@ impl ChunkGeometry {
             return Err(GeometryError::ZeroObservationSteps);
         }
         if self.t_o > self.t_p {
-            return Err(GeometryError::ObservationStepsExceedHorizon { t_o: self.t_o, t_p: self.t_p });
+            return Err(GeometryError::ObservationStepsExceedHorizon {
+                t_o: self.t_o,
+                t_p: self.t_p,
+            });
         }
         if self.h == 0 {
             return Err(GeometryError::ZeroStride);
@@ -130,7 +133,11 @@ mod tests {
     fn paper_worked_example_t16_o2_h2() {
         let g = ChunkGeometry::new(16, 2, 2).unwrap();
         assert_eq!((g.m_min(), g.m_max()), (7, 8));
-        let at = |tau| g.covering_queries(tau).map(|i| g.query_time(i)).collect::<Vec<_>>();
+        let at = |tau| {
+            g.covering_queries(tau)
+                .map(|i| g.query_time(i))
+                .collect::<Vec<_>>()
+        };
         assert_eq!(at(100), (86..=100).step_by(2).collect::<Vec<_>>());
         assert_eq!(at(101), (88..=100).step_by(2).collect::<Vec<_>>());
         assert_eq!(g.m_at(100), 8);
@@ -189,7 +196,10 @@ mod tests {
 
     #[test]
     fn invalid_geometries_are_typed_errors() {
-        assert_eq!(ChunkGeometry::new(16, 0, 2), Err(GeometryError::ZeroObservationSteps));
+        assert_eq!(
+            ChunkGeometry::new(16, 0, 2),
+            Err(GeometryError::ZeroObservationSteps)
+        );
         assert_eq!(
             ChunkGeometry::new(4, 5, 1),
             Err(GeometryError::ObservationStepsExceedHorizon { t_o: 5, t_p: 4 })
@@ -202,6 +212,9 @@ mod tests {
         assert_eq!(ChunkGeometry::new(0, 0, 1), Err(GeometryError::ZeroHorizon));
         assert!(ChunkGeometry::new(16, 2, 15).is_ok());
         let msg = GeometryError::StrideLeavesGaps { h: 16, max: 15 }.to_string();
-        assert!(msg.contains("h = 16") && msg.contains("at most 15"), "{msg}");
+        assert!(
+            msg.contains("h = 16") && msg.contains("at most 15"),
+            "{msg}"
+        );
     }
 }

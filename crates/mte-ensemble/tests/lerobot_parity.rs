@@ -30,7 +30,10 @@ fn oldest_first_ewm_matches_lerobot_act_temporal_ensembler() {
     assert_eq!(fixture.cases.len(), 4);
     for case in &fixture.cases {
         let g = ChunkGeometry::new(case.chunk_size, 1, 1).unwrap();
-        let agg = Aggregator::ExpWeightedMean { m: case.coeff, order: WeightOrder::OldestFirst };
+        let agg = Aggregator::ExpWeightedMean {
+            m: case.coeff,
+            order: WeightOrder::OldestFirst,
+        };
         let mut ens = TemporalEnsembler::new(g, case.action_dim, agg).unwrap();
         let mut worst = 0.0f32;
         for (t, (chunk, expected)) in case.chunks.iter().zip(&case.actions).enumerate() {
@@ -46,7 +49,11 @@ fn oldest_first_ewm_matches_lerobot_act_temporal_ensembler() {
         // up to chunk_size times per slot), mte sums the weights in f64 once: the gap is a
         // few float32 ulps of values in [-1, 1], far below 1e-5. A wrong convention (newest
         // first) or off-by-one row moves outputs by more than 1e-2 on these streams.
-        assert!(worst < 1e-5, "coeff {}: max abs difference {worst}", case.coeff);
+        assert!(
+            worst < 1e-5,
+            "coeff {}: max abs difference {worst}",
+            case.coeff
+        );
     }
 }
 
@@ -57,7 +64,10 @@ fn the_opposite_convention_does_not_match() {
         serde_json::from_str(include_str!("fixtures/lerobot_act_ensembler.json")).unwrap();
     let case = &fixture.cases[1]; // coeff 0.5
     let g = ChunkGeometry::new(case.chunk_size, 1, 1).unwrap();
-    let agg = Aggregator::ExpWeightedMean { m: case.coeff, order: WeightOrder::NewestFirst };
+    let agg = Aggregator::ExpWeightedMean {
+        m: case.coeff,
+        order: WeightOrder::NewestFirst,
+    };
     let mut ens = TemporalEnsembler::new(g, case.action_dim, agg).unwrap();
     let mut worst = 0.0f32;
     for (t, (chunk, expected)) in case.chunks.iter().zip(&case.actions).enumerate() {

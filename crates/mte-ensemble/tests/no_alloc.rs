@@ -46,19 +46,25 @@ fn allocations() -> u64 {
 #[test]
 fn steady_state_steps_do_not_allocate() {
     let mut aggs = Aggregator::catalogue();
-    aggs.push(Aggregator::ExpWeightedMean { m: -0.5, order: WeightOrder::NewestFirst });
+    aggs.push(Aggregator::ExpWeightedMean {
+        m: -0.5,
+        order: WeightOrder::NewestFirst,
+    });
     aggs.push(Aggregator::RecencyMedian { m: -0.2 });
     let setups = [(16, 2, 2, 7), (100, 1, 1, 14), (10, 2, 3, 2), (64, 2, 1, 3)];
     // The allocator must really be counting, or the assertions below prove nothing.
     let before = allocations();
-    let probe = vec![1u8; 16];
+    let probe: Box<[u8]> = Box::new([1u8; 16]);
     assert!(allocations() > before && probe[0] == 1);
 
     for (t_p, t_o, h, d) in setups {
         let g = ChunkGeometry::new(t_p, t_o, h).unwrap();
         for &agg in &aggs {
             for bracket_diagnostics in [false, true] {
-                let opts = EnsemblerOptions { bracket_diagnostics, ..Default::default() };
+                let opts = EnsemblerOptions {
+                    bracket_diagnostics,
+                    ..Default::default()
+                };
                 let mut ens = TemporalEnsembler::with_options(g, d, agg, opts).unwrap();
                 let chunk: Vec<f32> = (0..t_p * d).map(|i| (i as f32 * 0.37).sin()).collect();
                 let mut bad = chunk.clone();
@@ -69,8 +75,14 @@ fn steady_state_steps_do_not_allocate() {
                     ens.reset();
                     for tau in 0..300u64 {
                         if tau % h as u64 == 0 {
-                            let meta = QueryMeta { corrupted: (tau / h as u64) % 3 == episode };
-                            let c = if tau % 7 == 0 && tau > t_p as u64 { &bad } else { &chunk };
+                            let meta = QueryMeta {
+                                corrupted: (tau / h as u64) % 3 == episode,
+                            };
+                            let c = if tau % 7 == 0 && tau > t_p as u64 {
+                                &bad
+                            } else {
+                                &chunk
+                            };
                             ens.insert(tau, c, meta).unwrap();
                         }
                         let step = ens.action(tau).unwrap();
@@ -82,7 +94,10 @@ fn steady_state_steps_do_not_allocate() {
                     assert!(ens.insert(5, &chunk, QueryMeta::CLEAN).is_err());
                 }
                 let n = allocations() - start;
-                assert_eq!(n, 0, "{agg} t_p={t_p} h={h} d={d}: {n} allocations in 900 steps");
+                assert_eq!(
+                    n, 0,
+                    "{agg} t_p={t_p} h={h} d={d}: {n} allocations in 900 steps"
+                );
             }
         }
     }

@@ -8,8 +8,7 @@
 #![allow(clippy::unwrap_used)]
 
 use mte_ensemble::{
-    Aggregator, ChunkGeometry, EnsembleError, MedianTie, QueryMeta, TemporalEnsembler,
-    WeightOrder,
+    Aggregator, ChunkGeometry, EnsembleError, MedianTie, QueryMeta, TemporalEnsembler, WeightOrder,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -30,7 +29,11 @@ fn column(c: &[Vec<f64>], j: usize) -> Vec<f64> {
 }
 
 fn dist(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>().sqrt()
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).powi(2))
+        .sum::<f64>()
+        .sqrt()
 }
 
 fn naive_median(v: Vec<f64>, tie: MedianTie) -> f64 {
@@ -61,7 +64,9 @@ fn exp_weights(n: usize, m: f64, order: WeightOrder) -> Vec<f64> {
 
 fn weighted_mean(c: &[Vec<f64>], w: &[f64]) -> Vec<f64> {
     let total: f64 = w.iter().sum();
-    (0..c[0].len()).map(|j| c.iter().zip(w).map(|(r, wi)| wi * r[j]).sum::<f64>() / total).collect()
+    (0..c[0].len())
+        .map(|j| c.iter().zip(w).map(|(r, wi)| wi * r[j]).sum::<f64>() / total)
+        .collect()
 }
 
 /// Medoid of the candidates in `keep` by summed distance; ties go to the newest.
@@ -87,14 +92,20 @@ fn naive(agg: Aggregator, c: &[Vec<f64>]) -> Option<Vec<f64>> {
         Aggregator::ExpWeightedMean { m, order } => weighted_mean(c, &exp_weights(n, m, order)),
         Aggregator::Mean => weighted_mean(c, &vec![1.0; n]),
         Aggregator::Latest => c[n - 1].clone(),
-        Aggregator::Median { tie: MedianTie::DropOldest } => {
+        Aggregator::Median {
+            tie: MedianTie::DropOldest,
+        } => {
             let rest = if n % 2 == 0 { &c[1..] } else { c };
-            (0..d).map(|j| naive_median(column(rest, j), MedianTie::Average)).collect()
+            (0..d)
+                .map(|j| naive_median(column(rest, j), MedianTie::Average))
+                .collect()
         }
         Aggregator::Median { tie } => (0..d).map(|j| naive_median(column(c, j), tie)).collect(),
         Aggregator::BlockMedoid => medoid_among(c, &(0..n).collect::<Vec<_>>()),
         Aggregator::TrimmedMedoid { q } => {
-            let score: Vec<f64> = (0..n).map(|i| c.iter().map(|r| dist(&c[i], r)).sum()).collect();
+            let score: Vec<f64> = (0..n)
+                .map(|i| c.iter().map(|r| dist(&c[i], r)).sum())
+                .collect();
             let mut order: Vec<usize> = (0..n).collect();
             // Largest score first; equal scores: oldest first.
             order.sort_by(|&a, &b| score[b].total_cmp(&score[a]).then(a.cmp(&b)));
@@ -140,8 +151,14 @@ fn naive(agg: Aggregator, c: &[Vec<f64>]) -> Option<Vec<f64>> {
 fn all_aggregators() -> Vec<Aggregator> {
     let mut v = Aggregator::catalogue();
     v.extend([
-        Aggregator::ExpWeightedMean { m: -0.2, order: WeightOrder::OldestFirst },
-        Aggregator::ExpWeightedMean { m: 0.7, order: WeightOrder::NewestFirst },
+        Aggregator::ExpWeightedMean {
+            m: -0.2,
+            order: WeightOrder::OldestFirst,
+        },
+        Aggregator::ExpWeightedMean {
+            m: 0.7,
+            order: WeightOrder::NewestFirst,
+        },
         Aggregator::TrimmedMedoid { q: 3 },
         Aggregator::TrimmedMean { k: 3 },
         Aggregator::RecencyMedian { m: 0.0 },
@@ -158,13 +175,22 @@ fn random_episode(rng: &mut ChaCha8Rng, g: ChunkGeometry, d: usize, len: u64) ->
     let mut t = 0u64;
     while t < len {
         if queries.is_empty() || rng.random_bool(0.9) {
-            let mut chunk: Vec<f32> =
-                (0..g.t_p * d).map(|_| rng.random_range(-10.0f32..10.0)).collect();
+            let mut chunk: Vec<f32> = (0..g.t_p * d)
+                .map(|_| rng.random_range(-10.0f32..10.0))
+                .collect();
             if rng.random_bool(0.05) {
                 let i = rng.random_range(0..chunk.len());
-                chunk[i] = if rng.random_bool(0.5) { f32::NAN } else { f32::INFINITY };
+                chunk[i] = if rng.random_bool(0.5) {
+                    f32::NAN
+                } else {
+                    f32::INFINITY
+                };
             }
-            queries.push(Query { t, chunk, corrupted: rng.random_bool(0.3) });
+            queries.push(Query {
+                t,
+                chunk,
+                corrupted: rng.random_bool(0.3),
+            });
         }
         t += rng.random_range(1..=g.h as u64);
     }
@@ -178,33 +204,57 @@ fn check_episode(agg: Aggregator, g: ChunkGeometry, d: usize, queries: &[Query],
     for tau in 0..len {
         while next < queries.len() && queries[next].t == tau {
             let q = &queries[next];
-            ens.insert(q.t, &q.chunk, QueryMeta { corrupted: q.corrupted }).unwrap();
+            ens.insert(
+                q.t,
+                &q.chunk,
+                QueryMeta {
+                    corrupted: q.corrupted,
+                },
+            )
+            .unwrap();
             next += 1;
         }
         // Oracle: scan every query of the episode.
-        let covering: Vec<&Query> =
-            queries.iter().filter(|q| q.t <= tau && tau < q.t + span).collect();
+        let covering: Vec<&Query> = queries
+            .iter()
+            .filter(|q| q.t <= tau && tau < q.t + span)
+            .collect();
         let rows: Vec<Vec<f64>> = covering
             .iter()
             .map(|q| {
                 let r = (tau - q.t) as usize + g.t_o - 1;
-                q.chunk[r * d..(r + 1) * d].iter().map(|&v| v as f64).collect()
+                q.chunk[r * d..(r + 1) * d]
+                    .iter()
+                    .map(|&v| v as f64)
+                    .collect()
             })
             .collect();
-        let finite: Vec<Vec<f64>> =
-            rows.iter().filter(|r| r.iter().all(|v| v.is_finite())).cloned().collect();
+        let finite: Vec<Vec<f64>> = rows
+            .iter()
+            .filter(|r| r.iter().all(|v| v.is_finite()))
+            .cloned()
+            .collect();
         let result = ens.action(tau);
         if covering.is_empty() {
-            assert!(matches!(result, Err(EnsembleError::NoCandidates { .. })), "tau {tau}");
+            assert!(
+                matches!(result, Err(EnsembleError::NoCandidates { .. })),
+                "tau {tau}"
+            );
             continue;
         }
         if finite.is_empty() {
-            assert!(matches!(result, Err(EnsembleError::NoFiniteCandidates { .. })));
+            assert!(matches!(
+                result,
+                Err(EnsembleError::NoFiniteCandidates { .. })
+            ));
             continue;
         }
         let step = result.unwrap();
         assert_eq!(step.report.m, covering.len());
-        assert_eq!(step.report.q, covering.iter().filter(|q| q.corrupted).count());
+        assert_eq!(
+            step.report.q,
+            covering.iter().filter(|q| q.corrupted).count()
+        );
         assert_eq!(step.report.excluded, rows.len() - finite.len());
         let got: Vec<f64> = step.action.iter().map(|&v| v as f64).collect();
         let scale = finite.iter().flatten().fold(1.0f64, |a, v| a.max(v.abs()));
@@ -224,18 +274,25 @@ fn check_episode(agg: Aggregator, g: ChunkGeometry, d: usize, queries: &[Query],
                 // long independent Weiszfeld run (relative 1e-6), from the mean.
                 let mut y = weighted_mean(&finite, &vec![1.0; finite.len()]);
                 for _ in 0..2000 {
-                    let w: Vec<f64> =
-                        finite.iter().map(|r| 1.0 / dist(r, &y).max(1e-12)).collect();
+                    let w: Vec<f64> = finite
+                        .iter()
+                        .map(|r| 1.0 / dist(r, &y).max(1e-12))
+                        .collect();
                     y = weighted_mean(&finite, &w);
                 }
                 let (ours, theirs) = (geo_objective(&finite, &got), geo_objective(&finite, &y));
-                let Aggregator::GeometricMedian { max_iter } = agg else { unreachable!() };
+                let Aggregator::GeometricMedian { max_iter } = agg else {
+                    unreachable!()
+                };
                 // The default bound (64 iterations) trades accuracy for worst-case latency:
                 // on these streams it leaves a relative objective gap up to ~1e-5 (seen at
                 // small M, where Weiszfeld converges slowest), so it gets 1e-4; 500
                 // iterations converge to the oracle's 1e-6.
                 let tol = if max_iter >= 500 { 1e-6 } else { 1e-4 };
-                assert!(ours <= theirs * (1.0 + tol) + 1e-9, "{agg} tau={tau}: {ours} > {theirs}");
+                assert!(
+                    ours <= theirs * (1.0 + tol) + 1e-9,
+                    "{agg} tau={tau}: {ours} > {theirs}"
+                );
             }
         }
     }
@@ -247,7 +304,11 @@ fn streaming_equals_offline_oracle_for_every_aggregator() {
     let aggs = all_aggregators();
     let mut episodes = 0;
     for case in 0..60 {
-        let t_p = if case % 5 == 0 { rng.random_range(60..=100) } else { rng.random_range(8..=32) };
+        let t_p = if case % 5 == 0 {
+            rng.random_range(60..=100)
+        } else {
+            rng.random_range(8..=32)
+        };
         let t_o = rng.random_range(1..=3.min(t_p));
         let h = rng.random_range(1..=4usize.min(t_p - t_o + 1));
         let g = ChunkGeometry::new(t_p, t_o, h).unwrap();
@@ -280,13 +341,17 @@ fn regular_strides_one_to_four_match_the_oracle() {
                 .step_by(h)
                 .map(|t| Query {
                     t,
-                    chunk: (0..t_p * d).map(|_| rng.random_range(-1.0f32..1.0)).collect(),
+                    chunk: (0..t_p * d)
+                        .map(|_| rng.random_range(-1.0f32..1.0))
+                        .collect(),
                     corrupted: rng.random_bool(0.25),
                 })
                 .collect();
-            for agg in [Aggregator::default(), Aggregator::MEDIAN, Aggregator::TrimmedMedoid {
-                q: 2,
-            }] {
+            for agg in [
+                Aggregator::default(),
+                Aggregator::MEDIAN,
+                Aggregator::TrimmedMedoid { q: 2 },
+            ] {
                 check_episode(agg, g, d, &queries, len);
             }
         }

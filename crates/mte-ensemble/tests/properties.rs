@@ -1,9 +1,7 @@
 //! Property tests of the aggregators (proptest).
 #![allow(clippy::unwrap_used)]
 
-use mte_ensemble::{
-    Aggregate, Aggregator, Candidates, MedianTie, WeightOrder, Workspace, bracket,
-};
+use mte_ensemble::{Aggregate, Aggregator, Candidates, MedianTie, WeightOrder, Workspace, bracket};
 use proptest::prelude::*;
 
 fn agg(a: Aggregator, rows: &[f32], d: usize) -> Vec<f32> {
@@ -16,23 +14,31 @@ fn agg(a: Aggregator, rows: &[f32], d: usize) -> Vec<f32> {
 
 /// `n` candidates of dimension `d`, finite.
 fn candidate_sets(max_n: usize, max_d: usize) -> impl Strategy<Value = (Vec<f32>, usize)> {
-    (1..=max_n, 1..=max_d).prop_flat_map(|(n, d)| {
-        (prop::collection::vec(-1000.0f32..1000.0, n * d), Just(d))
-    })
+    (1..=max_n, 1..=max_d)
+        .prop_flat_map(|(n, d)| (prop::collection::vec(-1000.0f32..1000.0, n * d), Just(d)))
 }
 
 /// Integer-valued candidates, so that translating by an integer is exact in f32.
 fn integer_sets(max_n: usize, max_d: usize) -> impl Strategy<Value = (Vec<f32>, usize)> {
     (1..=max_n, 1..=max_d).prop_flat_map(|(n, d)| {
-        (prop::collection::vec((-500i32..500).prop_map(|v| v as f32), n * d), Just(d))
+        (
+            prop::collection::vec((-500i32..500).prop_map(|v| v as f32), n * d),
+            Just(d),
+        )
     })
 }
 
-const TIES: [MedianTie; 4] =
-    [MedianTie::Average, MedianTie::Lower, MedianTie::Upper, MedianTie::DropOldest];
+const TIES: [MedianTie; 4] = [
+    MedianTie::Average,
+    MedianTie::Lower,
+    MedianTie::Upper,
+    MedianTie::DropOldest,
+];
 
 fn permute(rows: &[f32], d: usize, perm: &[usize]) -> Vec<f32> {
-    perm.iter().flat_map(|&i| rows[i * d..(i + 1) * d].iter().copied()).collect()
+    perm.iter()
+        .flat_map(|&i| rows[i * d..(i + 1) * d].iter().copied())
+        .collect()
 }
 
 proptest! {

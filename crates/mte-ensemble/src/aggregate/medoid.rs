@@ -29,7 +29,10 @@ fn pairwise(c: &Candidates<'_>, ws: &mut Workspace) {
 fn medoid_of_kept(n: usize, ws: &Workspace) -> usize {
     let mut best = (f64::INFINITY, 0);
     for i in (0..n).filter(|&i| ws.keep[i]) {
-        let s: f64 = (0..n).filter(|&j| ws.keep[j]).map(|j| ws.dist[i * n + j]).sum();
+        let s: f64 = (0..n)
+            .filter(|&j| ws.keep[j])
+            .map(|j| ws.dist[i * n + j])
+            .sum();
         if s <= best.0 {
             best = (s, i);
         }

@@ -31,11 +31,13 @@ pub const DEFAULT_GEOMEDIAN_ITERS: usize = 64;
 const GEOMEDIAN_TOL: f64 = 1e-9;
 
 /// A read-only view of `len` candidate actions of dimension `dim`, row-major,
-/// **oldest first**, every value finite.
+/// **oldest first**, every value finite. Rows may be padded to a `stride >= dim` (the
+/// ensembler pads to 4 lanes for SIMD); padding lanes are finite and ignored.
 #[derive(Debug, Clone, Copy)]
 pub struct Candidates<'a> {
     values: &'a [f32],
     dim: usize,
+    stride: usize,
 }
 
 impl<'a> Candidates<'a> {
@@ -45,28 +47,44 @@ impl<'a> Candidates<'a> {
     /// value is NaN or infinite (exclude such candidates first: see
     /// [`TemporalEnsembler`](crate::TemporalEnsembler), which does).
     pub fn new(values: &'a [f32], dim: usize) -> Result<Self, AggregateError> {
-        if dim == 0 || values.len() % dim != 0 {
-            return Err(AggregateError::Shape { len: values.len(), dim });
+        if dim == 0 || !values.len().is_multiple_of(dim) {
+            return Err(AggregateError::Shape {
+                len: values.len(),
+                dim,
+            });
         }
         if values.is_empty() {
             return Err(AggregateError::Empty);
         }
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
-            return Err(AggregateError::NonFinite { row: i / dim, col: i % dim });
+            return Err(AggregateError::NonFinite {
+                row: i / dim,
+                col: i % dim,
+            });
         }
-        Ok(Self { values, dim })
+        Ok(Self {
+            values,
+            dim,
+            stride: dim,
+        })
     }
 
-    /// Wraps values the caller has already checked (finite, non-empty, whole rows).
-    pub(crate) fn from_checked(values: &'a [f32], dim: usize) -> Self {
-        debug_assert!(dim > 0 && !values.is_empty() && values.len() % dim == 0);
+    /// Wraps values the caller has already checked (finite, non-empty, whole rows of
+    /// `stride >= dim` values).
+    pub(crate) fn from_checked(values: &'a [f32], dim: usize, stride: usize) -> Self {
+        debug_assert!(dim > 0 && stride >= dim && !values.is_empty());
+        debug_assert!(values.len().is_multiple_of(stride));
         debug_assert!(values.iter().all(|v| v.is_finite()));
-        Self { values, dim }
+        Self {
+            values,
+            dim,
+            stride,
+        }
     }
 
     /// Number of candidates `M`.
     pub fn len(&self) -> usize {
-        self.values.len() / self.dim
+        self.values.len() / self.stride
     }
 
     /// Always false: a candidate set holds at least one candidate.
@@ -79,12 +97,18 @@ impl<'a> Candidates<'a> {
         self.dim
     }
 
-    /// Candidate `i` (0 = oldest).
-    pub fn row(&self, i: usize) -> &'a [f32] {
-        &self.values[i * self.dim..(i + 1) * self.dim]
+    /// Values per row in [`values`](Self::values), `>= dim`.
+    pub fn stride(&self) -> usize {
+        self.stride
     }
 
-    /// All values, row-major.
+    /// Candidate `i` (0 = oldest), `dim` values.
+    #[inline]
+    pub fn row(&self, i: usize) -> &'a [f32] {
+        &self.values[i * self.stride..i * self.stride + self.dim]
+    }
+
+    /// All values, row-major with [`stride`](Self::stride) values per row.
     pub fn values(&self) -> &'a [f32] {
         self.values
     }
@@ -96,6 +120,8 @@ impl<'a> Candidates<'a> {
 pub struct Workspace {
     capacity: usize,
     dim: usize,
+    /// Row stride of `rows`: `dim` rounded up to 4 lanes.
+    stride: usize,
     rows: Vec<f32>,
     col: Vec<f32>,
     pairs: Vec<(f32, f64)>,
@@ -114,11 +140,15 @@ pub struct Workspace {
 impl Workspace {
     /// Scratch for up to `capacity` candidates of dimension up to `dim`.
     pub fn new(capacity: usize, dim: usize) -> Self {
-        let nets = (0..=capacity.min(NETWORK_MAX)).map(network::median_network).collect();
+        let nets = (0..=capacity.min(NETWORK_MAX))
+            .map(network::median_network)
+            .collect();
+        let stride = dim.div_ceil(4) * 4;
         Self {
             capacity,
             dim,
-            rows: vec![0.0; capacity * dim],
+            stride,
+            rows: vec![0.0; capacity * stride],
             col: vec![0.0; capacity],
             pairs: vec![(0.0, 0.0); capacity],
             dist: vec![0.0; capacity * capacity],
@@ -164,9 +194,12 @@ impl Workspace {
 
     fn check(&self, c: &Candidates<'_>, out: &[f32]) -> Result<(), AggregateError> {
         if out.len() != c.dim() {
-            return Err(AggregateError::OutputDimension { expected: c.dim(), got: out.len() });
+            return Err(AggregateError::OutputDimension {
+                expected: c.dim(),
+                got: out.len(),
+            });
         }
-        if c.len() > self.capacity || c.dim() > self.dim {
+        if c.len() > self.capacity || c.dim() > self.dim || c.stride() > self.stride {
             return Err(AggregateError::WorkspaceTooSmall {
                 capacity: self.capacity,
                 dim: self.dim,
@@ -283,31 +316,47 @@ pub enum Aggregator {
 impl Default for Aggregator {
     /// The deployed default: ACT/LeRobot's exp-weighted mean, `m = 0.01`, oldest first.
     fn default() -> Self {
-        Self::ExpWeightedMean { m: DEFAULT_EWM_M, order: WeightOrder::OldestFirst }
+        Self::ExpWeightedMean {
+            m: DEFAULT_EWM_M,
+            order: WeightOrder::OldestFirst,
+        }
     }
 }
 
 impl Aggregator {
     /// The coordinate-wise median with the paper's tie rule.
-    pub const MEDIAN: Self = Self::Median { tie: MedianTie::Average };
+    pub const MEDIAN: Self = Self::Median {
+        tie: MedianTie::Average,
+    };
 
     /// One of each built-in aggregator with its default parameters (`q`/`k` = 1 where a
     /// parameter has no natural default), in the order of the table above.
     pub fn catalogue() -> Vec<Aggregator> {
         vec![
             Self::default(),
-            Self::ExpWeightedMean { m: DEFAULT_EWM_M, order: WeightOrder::NewestFirst },
+            Self::ExpWeightedMean {
+                m: DEFAULT_EWM_M,
+                order: WeightOrder::NewestFirst,
+            },
             Self::Mean,
             Self::Latest,
             Self::MEDIAN,
-            Self::Median { tie: MedianTie::Lower },
-            Self::Median { tie: MedianTie::Upper },
-            Self::Median { tie: MedianTie::DropOldest },
+            Self::Median {
+                tie: MedianTie::Lower,
+            },
+            Self::Median {
+                tie: MedianTie::Upper,
+            },
+            Self::Median {
+                tie: MedianTie::DropOldest,
+            },
             Self::BlockMedoid,
             Self::TrimmedMedoid { q: 1 },
             Self::TrimmedMean { k: 1 },
             Self::RecencyMedian { m: 0.1 },
-            Self::GeometricMedian { max_iter: DEFAULT_GEOMEDIAN_ITERS },
+            Self::GeometricMedian {
+                max_iter: DEFAULT_GEOMEDIAN_ITERS,
+            },
         ]
     }
 
@@ -320,7 +369,10 @@ impl Aggregator {
     /// Validates parameters: finite coefficients and a positive iteration bound.
     pub fn validate(&self) -> Result<(), ParseAggregatorError> {
         let bad = |reason: &str| {
-            Err(ParseAggregatorError { input: self.to_string(), reason: reason.to_string() })
+            Err(ParseAggregatorError {
+                input: self.to_string(),
+                reason: reason.to_string(),
+            })
         };
         match *self {
             Self::ExpWeightedMean { m, .. } | Self::RecencyMedian { m } if !m.is_finite() => {
@@ -368,16 +420,30 @@ impl fmt::Display for Aggregator {
     /// The canonical text form, which [`FromStr`] parses back to the same value.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match *self {
-            Self::ExpWeightedMean { m, order: WeightOrder::OldestFirst } => write!(f, "ewm:{m}"),
-            Self::ExpWeightedMean { m, order: WeightOrder::NewestFirst } => {
+            Self::ExpWeightedMean {
+                m,
+                order: WeightOrder::OldestFirst,
+            } => write!(f, "ewm:{m}"),
+            Self::ExpWeightedMean {
+                m,
+                order: WeightOrder::NewestFirst,
+            } => {
                 write!(f, "ewm-newest:{m}")
             }
             Self::Mean => f.write_str("mean"),
             Self::Latest => f.write_str("latest"),
-            Self::Median { tie: MedianTie::Average } => f.write_str("median"),
-            Self::Median { tie: MedianTie::Lower } => f.write_str("median:lower"),
-            Self::Median { tie: MedianTie::Upper } => f.write_str("median:upper"),
-            Self::Median { tie: MedianTie::DropOldest } => f.write_str("median:drop-oldest"),
+            Self::Median {
+                tie: MedianTie::Average,
+            } => f.write_str("median"),
+            Self::Median {
+                tie: MedianTie::Lower,
+            } => f.write_str("median:lower"),
+            Self::Median {
+                tie: MedianTie::Upper,
+            } => f.write_str("median:upper"),
+            Self::Median {
+                tie: MedianTie::DropOldest,
+            } => f.write_str("median:drop-oldest"),
             Self::BlockMedoid => f.write_str("medoid"),
             Self::TrimmedMedoid { q } => write!(f, "trimmed-medoid:{q}"),
             Self::TrimmedMean { k } => write!(f, "trimmed-mean:{k}"),
@@ -395,7 +461,10 @@ impl FromStr for Aggregator {
     type Err = ParseAggregatorError;
 
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        let err = |reason: String| ParseAggregatorError { input: s.to_string(), reason };
+        let err = |reason: String| ParseAggregatorError {
+            input: s.to_string(),
+            reason,
+        };
         let text = s.trim().to_ascii_lowercase();
         let (name, arg) = match text.split_once(':') {
             Some((n, a)) => (n.trim(), Some(a.trim())),
@@ -423,12 +492,14 @@ impl FromStr for Aggregator {
             Some(a) => Err(err(format!("{name} takes no parameter, got {a:?}"))),
         };
         let agg = match name {
-            "ewm" | "ewm-oldest" => {
-                Self::ExpWeightedMean { m: coef(DEFAULT_EWM_M)?, order: WeightOrder::OldestFirst }
-            }
-            "ewm-newest" => {
-                Self::ExpWeightedMean { m: coef(DEFAULT_EWM_M)?, order: WeightOrder::NewestFirst }
-            }
+            "ewm" | "ewm-oldest" => Self::ExpWeightedMean {
+                m: coef(DEFAULT_EWM_M)?,
+                order: WeightOrder::OldestFirst,
+            },
+            "ewm-newest" => Self::ExpWeightedMean {
+                m: coef(DEFAULT_EWM_M)?,
+                order: WeightOrder::NewestFirst,
+            },
             "mean" => no_arg(Self::Mean)?,
             "latest" => no_arg(Self::Latest)?,
             "median" => {
@@ -446,8 +517,12 @@ impl FromStr for Aggregator {
                 Self::Median { tie }
             }
             "medoid" | "block-medoid" => no_arg(Self::BlockMedoid)?,
-            "trimmed-medoid" => Self::TrimmedMedoid { q: count("a drop count q", 0)? },
-            "trimmed-mean" => Self::TrimmedMean { k: count("a trim count k", 0)? },
+            "trimmed-medoid" => Self::TrimmedMedoid {
+                q: count("a drop count q", 0)?,
+            },
+            "trimmed-mean" => Self::TrimmedMean {
+                k: count("a trim count k", 0)?,
+            },
             "recency-median" => Self::RecencyMedian { m: coef(0.1)? },
             "geomedian" | "geometric-median" => Self::GeometricMedian {
                 max_iter: if arg.is_some() {
@@ -456,7 +531,11 @@ impl FromStr for Aggregator {
                     DEFAULT_GEOMEDIAN_ITERS
                 },
             },
-            other => return Err(err(format!("unknown aggregator {other:?}; expected {FORMS}"))),
+            other => {
+                return Err(err(format!(
+                    "unknown aggregator {other:?}; expected {FORMS}"
+                )));
+            }
         };
         Ok(agg)
     }
@@ -485,7 +564,11 @@ mod tests {
             let text = agg.to_string();
             assert_eq!(text.parse::<Aggregator>().unwrap(), agg, "{text}");
             let json = serde_json::to_string(&agg).unwrap();
-            assert_eq!(serde_json::from_str::<Aggregator>(&json).unwrap(), agg, "{json}");
+            assert_eq!(
+                serde_json::from_str::<Aggregator>(&json).unwrap(),
+                agg,
+                "{json}"
+            );
         }
     }
 
@@ -494,7 +577,10 @@ mod tests {
         assert_eq!("ewm".parse::<Aggregator>().unwrap(), Aggregator::default());
         assert_eq!(
             "ewm-newest:0.5".parse::<Aggregator>().unwrap(),
-            Aggregator::ExpWeightedMean { m: 0.5, order: WeightOrder::NewestFirst }
+            Aggregator::ExpWeightedMean {
+                m: 0.5,
+                order: WeightOrder::NewestFirst
+            }
         );
         assert_eq!("MEDIAN".parse::<Aggregator>().unwrap(), Aggregator::MEDIAN);
         assert_eq!(
@@ -503,7 +589,9 @@ mod tests {
         );
         assert_eq!(
             "geomedian".parse::<Aggregator>().unwrap(),
-            Aggregator::GeometricMedian { max_iter: DEFAULT_GEOMEDIAN_ITERS }
+            Aggregator::GeometricMedian {
+                max_iter: DEFAULT_GEOMEDIAN_ITERS
+            }
         );
     }
 
@@ -526,10 +614,10 @@ mod tests {
 
     #[test]
     fn candidates_reject_bad_shapes_and_non_finite_values() {
-        assert_eq!(Candidates::new(&[1.0, 2.0, 3.0], 2).unwrap_err(), AggregateError::Shape {
-            len: 3,
-            dim: 2
-        });
+        assert_eq!(
+            Candidates::new(&[1.0, 2.0, 3.0], 2).unwrap_err(),
+            AggregateError::Shape { len: 3, dim: 2 }
+        );
         assert_eq!(Candidates::new(&[], 2).unwrap_err(), AggregateError::Empty);
         assert_eq!(
             Candidates::new(&[1.0, 2.0, f32::NAN, 0.0], 2).unwrap_err(),
@@ -551,7 +639,10 @@ mod tests {
         let mut ws = Workspace::new(3, 2);
         assert_eq!(
             Aggregator::MEDIAN.aggregate(&c, &mut ws, &mut short),
-            Err(AggregateError::OutputDimension { expected: 2, got: 1 })
+            Err(AggregateError::OutputDimension {
+                expected: 2,
+                got: 1
+            })
         );
     }
 }

@@ -9,48 +9,56 @@ fn midpoint(lo: f32, hi: f32) -> f32 {
     ((lo as f64 + hi as f64) * 0.5) as f32
 }
 
-/// Sorts `n` candidates starting at row `first` coordinate-wise into `ws.rows` (only the
-/// central wires are guaranteed sorted) and writes the central pair of coordinate `j` to
-/// `emit(j, lower, upper)`.
+/// Writes the central pair of order statistics of every coordinate of the candidates from
+/// row `first` on to `emit(j, lower, upper)`, by selection (for sets beyond the networks).
 fn central_pairs(
     c: &Candidates<'_>,
     first: usize,
     ws: &mut Workspace,
     mut emit: impl FnMut(usize, f32, f32),
 ) {
-    let d = c.dim();
     let n = c.len() - first;
     let (lo, hi) = ((n - 1) / 2, n / 2);
-    let src = &c.values()[first * d..];
-    if let Some(net) = ws.median_nets.get(n) {
-        let rows = &mut ws.rows[..n * d];
-        rows.copy_from_slice(src);
-        network::apply_rows(net, rows, d);
-        for j in 0..d {
-            emit(j, rows[lo * d + j], rows[hi * d + j]);
+    for j in 0..c.dim() {
+        let col = &mut ws.col[..n];
+        for (i, v) in col.iter_mut().enumerate() {
+            *v = c.row(first + i)[j];
         }
-    } else {
-        for j in 0..d {
-            let col = &mut ws.col[..n];
-            for (i, v) in col.iter_mut().enumerate() {
-                *v = src[i * d + j];
-            }
-            let (below, upper, _) = col.select_nth_unstable_by(hi, f32::total_cmp);
-            let upper = *upper;
-            let lower = if lo == hi {
-                upper
-            } else {
-                below.iter().copied().fold(f32::NEG_INFINITY, f32::max)
-            };
-            emit(j, lower, upper);
-        }
+        let (below, upper, _) = col.select_nth_unstable_by(hi, f32::total_cmp);
+        let upper = *upper;
+        let lower = if lo == hi {
+            upper
+        } else {
+            below.iter().copied().fold(f32::NEG_INFINITY, f32::max)
+        };
+        emit(j, lower, upper);
     }
 }
 
 /// Coordinate-wise median with the given rule for an even count.
 pub(super) fn median(c: &Candidates<'_>, tie: MedianTie, ws: &mut Workspace, out: &mut [f32]) {
     let n = c.len();
-    let first = usize::from(tie == MedianTie::DropOldest && n % 2 == 0);
+    let first = usize::from(tie == MedianTie::DropOldest && n.is_multiple_of(2));
+    let (d, stride, m) = (c.dim(), c.stride(), n - first);
+    if let Some(net) = ws.median_nets.get(m) {
+        // Fast path: sort all coordinates at once with the network, then read the central
+        // rows.
+        let rows = &mut ws.rows[..m * stride];
+        rows.copy_from_slice(&c.values()[first * stride..]);
+        network::apply_rows(net, rows, stride);
+        let lo = &rows[(m - 1) / 2 * stride..][..d];
+        let hi = &rows[m / 2 * stride..][..d];
+        match tie {
+            MedianTie::Average | MedianTie::DropOldest => {
+                for ((o, &a), &b) in out.iter_mut().zip(lo).zip(hi) {
+                    *o = midpoint(a, b);
+                }
+            }
+            MedianTie::Lower => out.copy_from_slice(lo),
+            MedianTie::Upper => out.copy_from_slice(hi),
+        }
+        return;
+    }
     central_pairs(c, first, ws, |j, lo, hi| {
         out[j] = match tie {
             MedianTie::Average | MedianTie::DropOldest => midpoint(lo, hi),
@@ -67,7 +75,7 @@ pub(super) fn trimmed_mean(c: &Candidates<'_>, k: usize, ws: &mut Workspace, out
     for (j, o) in out.iter_mut().enumerate().take(d) {
         let col = &mut ws.col[..n];
         for (i, v) in col.iter_mut().enumerate() {
-            *v = c.values()[i * d + j];
+            *v = c.row(i)[j];
         }
         col.sort_unstable_by(f32::total_cmp);
         let kept = &col[r..n - r];
@@ -86,7 +94,7 @@ pub(super) fn recency_median(c: &Candidates<'_>, m: f64, ws: &mut Workspace, out
     for (j, o) in out.iter_mut().enumerate().take(d) {
         let pairs = &mut ws.pairs[..n];
         for (i, p) in pairs.iter_mut().enumerate() {
-            *p = (c.values()[i * d + j], ws.score[i]);
+            *p = (c.row(i)[j], ws.score[i]);
         }
         pairs.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
         let mut cum = 0.0;

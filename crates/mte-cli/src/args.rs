@@ -1,0 +1,122 @@
+//! Command-line arguments (clap derive).
+//!
+//! House style: every flag has a doc comment (it becomes the help text) that states the
+//! unit and the default; long names are kebab-case; values that name a choice are enums or
+//! parse through the library's own `FromStr` (aggregators), never free strings.
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use mte_ensemble::Aggregator;
+
+/// mte: robust temporal ensembling for action-chunked robot policies.
+#[derive(Debug, Parser)]
+#[command(name = "mte", version, about, long_about = None)]
+pub struct Cli {
+    /// Print less (errors and requested output only).
+    #[arg(short, long, global = true, conflicts_with = "verbose")]
+    pub quiet: bool,
+    /// Print more detail (repeat for more).
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    pub verbose: u8,
+    /// Hide progress bars (they are also hidden when stderr is not a terminal).
+    #[arg(long, global = true)]
+    pub no_progress: bool,
+    /// Output format of results on stdout.
+    #[arg(long, global = true, value_enum, default_value_t = Format::Text)]
+    pub format: Format,
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Output format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Format {
+    /// Tables for people.
+    Text,
+    /// One JSON document for programs.
+    Json,
+}
+
+/// Subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Synthetic stress test: what corrupted queries do to each aggregator (no simulator).
+    Demo(DemoArgs),
+    /// Work with recorded chunk streams.
+    #[command(subcommand)]
+    Ensemble(EnsembleCommand),
+}
+
+/// `mte ensemble ...`
+#[derive(Debug, Subcommand)]
+pub enum EnsembleCommand {
+    /// Aggregate a recorded chunk stream (JSON Lines) and write one line per control time.
+    Replay(ReplayArgs),
+}
+
+/// `mte demo`
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    /// Episodes per burst length q.
+    #[arg(long, default_value_t = 20)]
+    pub episodes: usize,
+    /// Control steps per episode.
+    #[arg(long, default_value_t = 300)]
+    pub steps: u64,
+    /// Burst lengths: corrupted queries per period of M_min queries (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
+    pub q: Vec<usize>,
+    /// Aggregators to compare (comma-separated text forms; the first is the baseline of
+    /// the paired tests), e.g. `ewm:0.01,median,trimmed-mean:2`.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "ewm:0.01,median,median:drop-oldest,trimmed-mean:2,medoid"
+    )]
+    pub aggregators: Vec<Aggregator>,
+    /// Prediction horizon T_p (rows per chunk).
+    #[arg(long, default_value_t = 16)]
+    pub t_p: usize,
+    /// Observation steps T_o (the executable part of a chunk starts at row T_o - 1).
+    #[arg(long, default_value_t = 2)]
+    pub t_o: usize,
+    /// Stride h: control steps between queries.
+    #[arg(long, default_value_t = 2)]
+    pub stride: usize,
+    /// Action dimension.
+    #[arg(long, default_value_t = 2)]
+    pub dim: usize,
+    /// Standard deviation of a clean prediction's error (action units, PushT pixels).
+    #[arg(long, default_value_t = 2.0)]
+    pub noise: f64,
+    /// Displacement of corrupted chunks (action units).
+    #[arg(long, default_value_t = 100.0)]
+    pub corruption: f64,
+    /// Seed of every random draw.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Also write the full report as JSON to this file.
+    #[arg(long, value_name = "FILE")]
+    pub out: Option<PathBuf>,
+}
+
+/// `mte ensemble replay`
+#[derive(Debug, Args)]
+pub struct ReplayArgs {
+    /// Chunk stream, JSON Lines (`{"t": 0, "chunk": [[...], ...], "corrupted": false}`);
+    /// `-` reads standard input.
+    pub file: PathBuf,
+    /// Aggregator text form, e.g. `median`, `ewm:0.01`, `trimmed-medoid:2`.
+    #[arg(long, short, default_value = "ewm:0.01")]
+    pub aggregator: Aggregator,
+    /// Observation steps T_o of the policy that wrote the chunks: row T_o - 1 is the
+    /// action for the query's own time step (1 for ACT, 2 for Diffusion Policy).
+    #[arg(long, default_value_t = 1)]
+    pub t_o: usize,
+    /// Write the executed actions here (JSON Lines) instead of stdout; written to a
+    /// temporary file and renamed, so a failed run leaves no partial file.
+    #[arg(long, short, value_name = "FILE")]
+    pub out: Option<PathBuf>,
+}

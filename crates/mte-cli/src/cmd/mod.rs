@@ -1,0 +1,4 @@
+//! One module per subcommand: arguments in, library call, output out.
+
+pub mod demo;
+pub mod replay;

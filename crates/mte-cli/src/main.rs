@@ -1,0 +1,35 @@
+//! The `mte` binary: argument parsing, terminal output and exit codes. Every experiment
+//! lives in the libraries; this crate only turns arguments into library calls.
+//!
+//! Exit codes: 0 success, 2 error (the message names the value or flag to fix).
+
+mod args;
+mod cmd;
+mod progress;
+
+use std::process::ExitCode;
+
+use clap::Parser;
+
+use crate::args::{Cli, Command, EnsembleCommand};
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match &cli.command {
+        Command::Demo(a) => cmd::demo::run(&cli, a),
+        Command::Ensemble(EnsembleCommand::Replay(a)) => cmd::replay::run(&cli, a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            #[allow(clippy::print_stderr)]
+            {
+                eprintln!("error: {e}");
+                for cause in e.chain().skip(1) {
+                    eprintln!("  caused by: {cause}");
+                }
+            }
+            ExitCode::from(2)
+        }
+    }
+}

@@ -1,0 +1,36 @@
+//! # mte-eval: measuring what an aggregator buys you
+//!
+//! Turns the pieces of mte into experiments whose outcomes pair episode by episode.
+//!
+//! - [`synthetic`]: a stress test without a simulator. A smooth reference trajectory, a
+//!   chunked "policy" that predicts it with small noise, and a burst schedule that replaces
+//!   `q` of every `M_min` queries with arbitrary values. Every aggregator sees the same
+//!   streams, so tracking errors pair by episode.
+//! - [`replay`]: aggregate a recorded chunk stream (JSON Lines) offline.
+//! - [`Reporter`]: the progress seam. Libraries never print; the `mte` binary implements
+//!   this trait with progress bars.
+//!
+//! Conventions: time in integer control steps, actions in the policy's units (PushT:
+//! pixels of the 512 x 512 workspace), randomness always from an explicit seed.
+#![deny(missing_docs)]
+
+pub mod replay;
+pub mod synthetic;
+
+/// Progress callbacks for long-running work. All methods default to doing nothing.
+///
+/// Implementations must be cheap: they are called once per episode.
+pub trait Reporter: Sync {
+    /// A phase with `total` units of work starts.
+    fn start(&self, _label: &str, _total: u64) {}
+    /// `n` more units are done.
+    fn advance(&self, _n: u64) {}
+    /// The phase is over.
+    fn finish(&self) {}
+}
+
+/// A [`Reporter`] that reports nothing.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Silent;
+
+impl Reporter for Silent {}

@@ -150,14 +150,12 @@ pub fn read_stream(input: impl BufRead) -> Result<ChunkStream, ReplayError> {
                 first_line,
             });
         }
-        if let Some((_, prev)) = records.last() {
-            if rec.t <= prev.t {
-                return Err(ReplayError::NotIncreasing {
-                    line: line_no,
-                    t: rec.t,
-                    previous: prev.t,
-                });
-            }
+        if let Some((_, prev)) = records.last().filter(|(_, prev)| rec.t <= prev.t) {
+            return Err(ReplayError::NotIncreasing {
+                line: line_no,
+                t: rec.t,
+                previous: prev.t,
+            });
         }
         records.push((line_no, rec));
     }

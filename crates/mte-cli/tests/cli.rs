@@ -1,0 +1,161 @@
+//! End-to-end tests of the `mte` binary.
+#![allow(clippy::unwrap_used)]
+
+use std::fs;
+
+use assert_cmd::Command;
+use predicates::prelude::*;
+
+fn mte() -> Command {
+    let mut c = Command::cargo_bin("mte").unwrap();
+    c.arg("--no-progress");
+    c
+}
+
+#[test]
+fn demo_json_shows_the_median_beating_the_mean_under_bursts() {
+    let out = mte()
+        .args([
+            "demo",
+            "--episodes",
+            "4",
+            "--steps",
+            "80",
+            "--format",
+            "json",
+        ])
+        .args(["--aggregators", "ewm:0.01,median"])
+        .assert()
+        .success()
+        .get_output()
+        .stdout
+        .clone();
+    let v: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    let cells = v["cells"].as_array().unwrap();
+    assert_eq!(cells.len(), 4 * 2);
+    let rmse = |q: u64, agg: &str| {
+        cells
+            .iter()
+            .find(|c| c["q"] == q && c["aggregator"] == agg)
+            .map(|c| c["rmse"].as_f64().unwrap())
+            .unwrap()
+    };
+    for q in 1..=3 {
+        assert!(rmse(q, "median") < rmse(q, "ewm:0.01"), "q={q}");
+    }
+    assert_eq!(v["comparisons"].as_array().unwrap().len(), 4);
+}
+
+#[test]
+fn demo_text_prints_the_tables() {
+    mte()
+        .args(["demo", "--episodes", "2", "--steps", "60", "--q", "0,3"])
+        .assert()
+        .success()
+        .stdout(predicate::str::contains("| q | ewm:0.01 | median |"))
+        .stdout(predicate::str::contains("| median (q=3) | 2q<M |"))
+        .stdout(predicate::str::contains("Distribution of M(tau)"));
+}
+
+#[test]
+fn bad_flags_exit_2_naming_the_value() {
+    mte().args(["demo", "--q", "9"]).assert().code(2).stderr(
+        predicate::str::contains("q_values = 9").and(predicate::str::contains("M_min = 7")),
+    );
+    mte()
+        .args(["demo", "--aggregators", "medain"])
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("unknown aggregator \"medain\""));
+    mte()
+        .args(["demo", "--t-o", "0"])
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("t_o = 0"));
+}
+
+#[test]
+fn replay_writes_one_line_per_control_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("stream.jsonl");
+    let mut text = String::new();
+    for t in (0..20).step_by(2) {
+        let rows: Vec<String> = (0..6).map(|r| format!("[{}.0, 1.0]", t + r)).collect();
+        let corrupted = t % 6 == 0;
+        text.push_str(&format!(
+            "{{\"t\": {t}, \"chunk\": [{}], \"corrupted\": {corrupted}}}\n",
+            rows.join(", ")
+        ));
+    }
+    fs::write(&input, text).unwrap();
+    let out = dir.path().join("actions.jsonl");
+    mte()
+        .args(["ensemble", "replay"])
+        .arg(&input)
+        .args(["--aggregator", "median", "--t-o", "2", "--out"])
+        .arg(&out)
+        .assert()
+        .success()
+        .stderr(predicate::str::contains(
+            "replayed 10 queries (t_p = 6, d = 2)",
+        ));
+    let lines: Vec<serde_json::Value> = fs::read_to_string(&out)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    // Queries at 0..=18 each cover 5 control times: tau 0..=22.
+    assert_eq!(lines.len(), 23);
+    assert_eq!(lines[0]["tau"], 0);
+    // Row r of the query at t is for time t - 1 + r and holds t + r: the action at tau is
+    // tau + 1 in coordinate 0 whichever query supplies it.
+    for l in &lines {
+        let tau = l["tau"].as_f64().unwrap();
+        assert_eq!(l["action"][0].as_f64().unwrap(), tau + 1.0, "{l}");
+        assert_eq!(l["action"][1].as_f64().unwrap(), 1.0);
+    }
+    assert_eq!(lines[6]["report"]["m"], 3);
+}
+
+#[test]
+fn malformed_replay_input_names_the_line_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("bad.jsonl");
+    fs::write(
+        &input,
+        "{\"t\": 0, \"chunk\": [[1.0], [2.0]]}\n{\"t\": 1, \"chunk\": [[1.0]]}\n",
+    )
+    .unwrap();
+    let out = dir.path().join("actions.jsonl");
+    mte()
+        .args(["ensemble", "replay"])
+        .arg(&input)
+        .arg("--out")
+        .arg(&out)
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains(
+            "line 2: chunk is 1 x 1, expected 2 x 1",
+        ));
+    assert!(!out.exists());
+    mte()
+        .args(["ensemble", "replay", "/nonexistent/stream.jsonl"])
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains(
+            "opening chunk stream /nonexistent/stream.jsonl",
+        ));
+}
+
+#[test]
+fn replay_reads_standard_input() {
+    mte()
+        .args(["-q", "ensemble", "replay", "-", "--aggregator", "mean"])
+        .write_stdin(
+            "{\"t\": 0, \"chunk\": [[1.0], [3.0]]}\n{\"t\": 1, \"chunk\": [[5.0], [7.0]]}\n",
+        )
+        .assert()
+        .success()
+        .stdout(predicate::str::contains("{\"tau\":1,\"action\":[4.0]"))
+        .stderr(predicate::str::is_empty());
+}

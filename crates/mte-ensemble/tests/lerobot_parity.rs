@@ -23,28 +23,38 @@ struct Case {
     actions: Vec<Vec<f32>>,
 }
 
+fn fixture() -> Fixture {
+    serde_json::from_str(include_str!("fixtures/lerobot_act_ensembler.json")).unwrap()
+}
+
+/// Replays one recorded stream with `ewm:<coeff>` in the given order and returns the
+/// largest absolute difference from LeRobot's actions.
+fn max_gap(case: &Case, order: WeightOrder) -> f32 {
+    let g = ChunkGeometry::new(case.chunk_size, 1, 1).unwrap();
+    let agg = Aggregator::ExpWeightedMean {
+        m: case.coeff,
+        order,
+    };
+    let mut ens = TemporalEnsembler::new(g, case.action_dim, agg).unwrap();
+    let mut worst = 0.0f32;
+    for (t, (chunk, expected)) in case.chunks.iter().zip(&case.actions).enumerate() {
+        let flat: Vec<f32> = chunk.iter().flatten().copied().collect();
+        ens.insert(t as u64, &flat, QueryMeta::CLEAN).unwrap();
+        let step = ens.action(t as u64).unwrap();
+        assert_eq!(step.report.m, (t + 1).min(case.chunk_size));
+        for (a, e) in step.action.iter().zip(expected) {
+            worst = worst.max((a - e).abs());
+        }
+    }
+    worst
+}
+
 #[test]
 fn oldest_first_ewm_matches_lerobot_act_temporal_ensembler() {
-    let text = include_str!("fixtures/lerobot_act_ensembler.json");
-    let fixture: Fixture = serde_json::from_str(text).unwrap();
+    let fixture = fixture();
     assert_eq!(fixture.cases.len(), 4);
     for case in &fixture.cases {
-        let g = ChunkGeometry::new(case.chunk_size, 1, 1).unwrap();
-        let agg = Aggregator::ExpWeightedMean {
-            m: case.coeff,
-            order: WeightOrder::OldestFirst,
-        };
-        let mut ens = TemporalEnsembler::new(g, case.action_dim, agg).unwrap();
-        let mut worst = 0.0f32;
-        for (t, (chunk, expected)) in case.chunks.iter().zip(&case.actions).enumerate() {
-            let flat: Vec<f32> = chunk.iter().flatten().copied().collect();
-            ens.insert(t as u64, &flat, QueryMeta::CLEAN).unwrap();
-            let step = ens.action(t as u64).unwrap();
-            assert_eq!(step.report.m, (t + 1).min(case.chunk_size));
-            for (a, e) in step.action.iter().zip(expected) {
-                worst = worst.max((a - e).abs());
-            }
-        }
+        let worst = max_gap(case, WeightOrder::OldestFirst);
         // LeRobot updates a float32 running average (one multiply-add and divide per step,
         // up to chunk_size times per slot), mte sums the weights in f64 once: the gap is a
         // few float32 ulps of values in [-1, 1], far below 1e-5. A wrong convention (newest
@@ -60,23 +70,6 @@ fn oldest_first_ewm_matches_lerobot_act_temporal_ensembler() {
 #[test]
 fn the_opposite_convention_does_not_match() {
     // Guards the test above against passing vacuously: newest-first weights must differ.
-    let fixture: Fixture =
-        serde_json::from_str(include_str!("fixtures/lerobot_act_ensembler.json")).unwrap();
-    let case = &fixture.cases[1]; // coeff 0.5
-    let g = ChunkGeometry::new(case.chunk_size, 1, 1).unwrap();
-    let agg = Aggregator::ExpWeightedMean {
-        m: case.coeff,
-        order: WeightOrder::NewestFirst,
-    };
-    let mut ens = TemporalEnsembler::new(g, case.action_dim, agg).unwrap();
-    let mut worst = 0.0f32;
-    for (t, (chunk, expected)) in case.chunks.iter().zip(&case.actions).enumerate() {
-        let flat: Vec<f32> = chunk.iter().flatten().copied().collect();
-        ens.insert(t as u64, &flat, QueryMeta::CLEAN).unwrap();
-        let step = ens.action(t as u64).unwrap();
-        for (a, e) in step.action.iter().zip(expected) {
-            worst = worst.max((a - e).abs());
-        }
-    }
+    let worst = max_gap(&fixture().cases[1], WeightOrder::NewestFirst); // coeff 0.5
     assert!(worst > 1e-2, "newest-first unexpectedly matched: {worst}");
 }

@@ -35,6 +35,19 @@ const TIES: [MedianTie; 4] = [
     MedianTie::DropOldest,
 ];
 
+/// A permutation of `0..n` from a seed (xorshift Fisher-Yates).
+fn shuffle(n: usize, seed: u64) -> Vec<usize> {
+    let mut perm: Vec<usize> = (0..n).collect();
+    let mut s = seed | 1;
+    for i in (1..n).rev() {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        perm.swap(i, (s % (i as u64 + 1)) as usize);
+    }
+    perm
+}
+
 fn permute(rows: &[f32], d: usize, perm: &[usize]) -> Vec<f32> {
     perm.iter()
         .flat_map(|&i| rows[i * d..(i + 1) * d].iter().copied())
@@ -62,13 +75,7 @@ proptest! {
         (rows, d) in candidate_sets(20, 5),
         seed in any::<u64>(),
     ) {
-        let n = rows.len() / d;
-        let mut perm: Vec<usize> = (0..n).collect();
-        let mut s = seed | 1;
-        for i in (1..n).rev() {
-            s ^= s << 13; s ^= s >> 7; s ^= s << 17;
-            perm.swap(i, (s % (i as u64 + 1)) as usize);
-        }
+        let perm = shuffle(rows.len() / d, seed);
         let shuffled = permute(&rows, d, &perm);
         for a in [
             Aggregator::MEDIAN,
@@ -103,12 +110,7 @@ proptest! {
         flags.extend(std::iter::repeat_n(true, q));
         // Interleave corrupted and clean candidates in a random order.
         let n = n_clean + q;
-        let mut perm: Vec<usize> = (0..n).collect();
-        let mut s = seed | 1;
-        for i in (1..n).rev() {
-            s ^= s << 13; s ^= s >> 7; s ^= s << 17;
-            perm.swap(i, (s % (i as u64 + 1)) as usize);
-        }
+        let perm = shuffle(n, seed);
         let rows = permute(&rows, d, &perm);
         let flags: Vec<bool> = perm.iter().map(|&i| flags[i]).collect();
         let c = Candidates::new(&rows, d).unwrap();

@@ -20,10 +20,10 @@ use std::time::{Duration, Instant};
 
 use common::{CHUNKS, Config, DIMS, Loop, STRIDES};
 use mte_ensemble::Aggregator;
+use mte_ensemble::bracket::nearest_rank;
 
 fn percentile(sorted: &[f64], q: f64) -> f64 {
-    let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
-    sorted[rank - 1]
+    nearest_rank(sorted, q).unwrap_or(0.0)
 }
 
 fn timer_overhead() -> f64 {

@@ -149,26 +149,25 @@ pub struct BracketRow {
     pub nearest_p99: Option<f64>,
 }
 
-/// Nearest-rank quantile of a sample, `None` when empty.
-fn quantile(values: &[f64], q: f64) -> Option<f64> {
-    if values.is_empty() {
-        return None;
-    }
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
-    Some(v[rank - 1])
+/// Nearest-rank quantile `q` in `[0, 1]` of an ascending sample: the value at rank
+/// `ceil(q n)` (at least 1). `None` when the sample is empty.
+pub fn nearest_rank(sorted: &[f64], q: f64) -> Option<f64> {
+    debug_assert!(sorted.windows(2).all(|w| w[0] <= w[1]));
+    let n = sorted.len();
+    let rank = ((q * n as f64).ceil() as usize).clamp(1, n.max(1));
+    sorted.get(rank - 1).copied()
 }
 
-/// Median with the average of the two central values for an even count.
-fn median(values: &[f64]) -> Option<f64> {
-    if values.is_empty() {
-        return None;
-    }
+/// Median of an ascending sample, averaging the two central values for an even count.
+fn sorted_median(sorted: &[f64]) -> Option<f64> {
+    let n = sorted.len();
+    (n > 0).then(|| 0.5 * (sorted[(n - 1) / 2] + sorted[n / 2]))
+}
+
+fn sorted_copy(values: &[f64]) -> Vec<f64> {
     let mut v = values.to_vec();
     v.sort_by(f64::total_cmp);
-    let n = v.len();
-    Some(0.5 * (v[(n - 1) / 2] + v[n / 2]))
+    v
 }
 
 impl BracketAccumulator {
@@ -209,16 +208,17 @@ impl BracketAccumulator {
             .filter(|(_, t)| t.steps > 0)
             .map(|(&regime, t)| {
                 let pct = |k: u64| 100.0 * k as f64 / t.steps as f64;
+                let (excess, nearest) = (sorted_copy(&t.excess), sorted_copy(&t.nearest));
                 BracketRow {
                     regime,
                     steps: t.steps,
                     outside_pct: pct(t.outside),
-                    median_excess: median(&t.excess).unwrap_or(0.0),
-                    max_excess: t.excess.iter().copied().fold(0.0, f64::max),
+                    median_excess: sorted_median(&excess).unwrap_or(0.0),
+                    max_excess: excess.last().copied().unwrap_or(0.0),
                     zero_width_outside: t.zero_width_outside,
                     coincide_pct: pct(t.coincide),
-                    nearest_median: median(&t.nearest),
-                    nearest_p99: quantile(&t.nearest, 0.99),
+                    nearest_median: sorted_median(&nearest),
+                    nearest_p99: nearest_rank(&nearest, 0.99),
                 }
             })
             .collect()
@@ -321,6 +321,10 @@ mod tests {
             (rows[1].steps, rows[1].outside_pct, rows[1].median_excess),
             (1, 100.0, 2.0)
         );
+        assert_eq!(nearest_rank(&[1.0, 2.0, 3.0, 4.0], 0.5), Some(2.0));
+        assert_eq!(nearest_rank(&[1.0, 2.0, 3.0, 4.0], 0.99), Some(4.0));
+        assert_eq!(nearest_rank(&[1.0, 2.0], 0.0), Some(1.0));
+        assert_eq!(nearest_rank(&[], 0.5), None);
         let mut twice = acc.clone();
         twice.merge(&acc);
         assert_eq!(twice.rows()[0].steps, 4);

@@ -13,6 +13,7 @@
 //! Measured per aggregator and `q`: tracking error `|a(tau) - r(tau)|` (RMSE over all steps
 //! and its 99th percentile), per-episode RMSE for paired tests, and the bracket table.
 
+use mte_ensemble::bracket::nearest_rank;
 use mte_ensemble::{
     Aggregator, BracketAccumulator, BracketRow, ChunkGeometry, EnsembleError, EnsemblerOptions,
     MedianTie, QueryMeta, TemporalEnsembler,
@@ -240,14 +241,6 @@ impl Reference {
     }
 }
 
-fn nearest_rank(sorted: &[f64], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return 0.0;
-    }
-    let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
-    sorted[rank - 1]
-}
-
 /// Runs the stress test. Deterministic for a config (including its seed).
 pub fn run(
     cfg: &SyntheticConfig,
@@ -360,7 +353,7 @@ pub fn run(
                 q,
                 aggregator,
                 rmse,
-                p99_error: nearest_rank(e, 0.99),
+                p99_error: nearest_rank(e, 0.99).unwrap_or(0.0),
                 max_error: e.last().copied().unwrap_or(0.0),
                 episode_rmse: std::mem::take(&mut episode_rmse[a]),
                 bracket: brackets[a].rows(),

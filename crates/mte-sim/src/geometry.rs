@@ -61,7 +61,11 @@ pub struct Pose {
 }
 
 /// The goal pose (256, 256, pi/4).
-pub const GOAL: Pose = Pose { x: 256.0, y: 256.0, theta: std::f64::consts::FRAC_PI_4 };
+pub const GOAL: Pose = Pose {
+    x: 256.0,
+    y: 256.0,
+    theta: std::f64::consts::FRAC_PI_4,
+};
 
 impl Pose {
     /// Body coordinates to world coordinates: rotate by `theta`, then translate.
@@ -82,7 +86,11 @@ impl Pose {
     pub fn from_cog(cog: [f64; 2], theta: f64) -> Self {
         let (s, c) = theta.sin_cos();
         let [gx, gy] = BLOCK_COG;
-        Pose { x: cog[0] - (c * gx - s * gy), y: cog[1] - (s * gx + c * gy), theta }
+        Pose {
+            x: cog[0] - (c * gx - s * gy),
+            y: cog[1] - (s * gx + c * gy),
+            theta,
+        }
     }
 
     /// The T's two boxes in world coordinates (bar first), vertices in [`BAR`]/[`STEM`] order.
@@ -109,7 +117,11 @@ mod tests {
 
     #[test]
     fn from_cog_inverts_cog() {
-        let p = Pose { x: 12.0, y: -3.0, theta: 2.3 };
+        let p = Pose {
+            x: 12.0,
+            y: -3.0,
+            theta: 2.3,
+        };
         let q = Pose::from_cog(p.cog(), p.theta);
         assert!((p.x - q.x).abs() < 1e-12 && (p.y - q.y).abs() < 1e-12);
     }

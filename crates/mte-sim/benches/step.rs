@@ -1,0 +1,70 @@
+//! PushT step throughput, on the workload of `shared/reference/peer-bench/bench_pusht.py`:
+//! 300-step episodes, seeds incremented per episode, pre-drawn uniform random actions in
+//! [0, 512]^2 (drawing them is not timed). A second workload pushes the block every step
+//! (actions at the block's centre of gravity plus noise), where the contact solver runs.
+//!
+//! `cargo bench -p mte-sim --bench step` — divan reports time per 300-step episode and
+//! items/s = steps/s.
+
+use divan::counter::ItemsCount;
+use mte_sim::{PhysicsConfig, PushT, ResetStream};
+use rand::{Rng, SeedableRng};
+
+const EP_LEN: usize = 300;
+
+fn main() {
+    divan::main();
+}
+
+fn uniform_actions(seed: u64) -> Vec<[f64; 2]> {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    (0..EP_LEN)
+        .map(|_| [rng.random_range(0.0..512.0), rng.random_range(0.0..512.0)])
+        .collect()
+}
+
+#[divan::bench(args = [true, false])]
+fn state_uniform_actions(bencher: divan::Bencher, skip_free_flight: bool) {
+    let config = PhysicsConfig {
+        skip_free_flight,
+        ..PhysicsConfig::default()
+    };
+    let mut env = PushT::new(config);
+    let actions: Vec<Vec<[f64; 2]>> = (0..16).map(uniform_actions).collect();
+    let mut ep = 0u64;
+    bencher.counter(ItemsCount::new(EP_LEN)).bench_local(|| {
+        ep += 1;
+        env.reset(ep, ResetStream::Pcg64).ok();
+        let acts = &actions[(ep % 16) as usize];
+        let mut cov = 0.0;
+        for a in acts {
+            if let Ok(info) = env.step(*a) {
+                cov += info.coverage;
+            }
+        }
+        cov
+    });
+}
+
+#[divan::bench]
+fn state_pushing(bencher: divan::Bencher) {
+    let mut env = PushT::default();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let mut ep = 0u64;
+    bencher.counter(ItemsCount::new(EP_LEN)).bench_local(|| {
+        ep += 1;
+        env.reset(ep, ResetStream::Pcg64).ok();
+        let mut contacts = 0;
+        for _ in 0..EP_LEN {
+            let c = env.block_pose().cog();
+            let a = [
+                c[0] + rng.random_range(-40.0..40.0),
+                c[1] + rng.random_range(-40.0..40.0),
+            ];
+            if let Ok(info) = env.step(a) {
+                contacts += info.n_contacts;
+            }
+        }
+        contacts
+    });
+}

@@ -5,7 +5,7 @@ Writes, under OUT_DIR (default crates/mte-sim/tests/fixtures/frames):
   frame_XX.png     gym-pusht's 96x96 `pixels` observation after reset_to_state, 20 states
   frame84_XX.png   the same at observation_width = observation_height = 84 (3 states)
   canvas_XX.png    the full 512x512 canvas (`_draw()`) for 2 states
-  vis_XX.png       the 680x680 `render()` visualisation with an action marker (1 state)
+  vis_XX*.png      `render()` visualisations with the action marker (680x680 and 300x200)
   resize_*.png     cv2.resize(INTER_LINEAR) outputs of images generated from formulas
                    (see `formula_image`) that the Rust test regenerates
   frames.json      index: for each image its file, size and the ACTUAL post-reset state
@@ -247,6 +247,16 @@ def main_fixtures(out_dir):
             write_png(out_dir / name, vis)
             frames.append({"png": name, "kind": kind, "width": vis.shape[1],
                            "height": vis.shape[0], "action": action, **actual})
+            # Non-square: gym-pusht scales the marker's x by the height (and y by the width).
+            env_wide = gym.make("gym_pusht/PushT-v0", obs_type="pixels_agent_pos",
+                                visualization_width=300, visualization_height=200)
+            _, actual_wide = reset_to(env_wide, state, log)
+            env_wide.unwrapped._last_action = np.array(action)
+            vis = env_wide.render()
+            name = f"vis_{i:02}_300x200.png"
+            write_png(out_dir / name, vis)
+            frames.append({"png": name, "kind": kind, "width": vis.shape[1],
+                           "height": vis.shape[0], "action": action, **actual_wide})
     resizes = []
     for name, formula, sw, sh, cn, dw, dh in RESIZES:
         src = formula_image(formula, sw, sh, cn)
@@ -286,16 +296,21 @@ Written by `{SCRIPT}` ({vs}); checked by `crates/mte-sim/tests/render_parity.rs`
   added (red anti-aliased lines at contacts; mte-sim draws them only when given, via the
   `*_with_contacts` methods); `resize` lists the cv2 resize fixtures and their source formula.
 - `frame_XX.png` (96x96, 20 states), `frame84_XX.png` (84x84, 3 states): `pixels`
-  observations. `canvas_XX.png`: full 512x512 canvases (2 states). `vis_07.png`: the 680x680
-  `render()` frame with the action cross. `resize_*.png`: `cv2.resize(img, (w, h))` of
-  formula images (a: `(7x + 13y + 101c) % 256`, b: `(x^2 + 3y^2 c) % 251`).
+  observations. `canvas_XX.png`: full 512x512 canvases (2 states). `vis_07.png`,
+  `vis_07_300x200.png`: `render()` frames (680x680 default, and 300x200) with the action
+  cross. `resize_*.png`: `cv2.resize(img, (w, h))` of formula images
+  (a: `(7x + 13y + 101c) % 256`, b: `(x^2 + 3y^2 c) % 251`).
 
-Regenerate (deterministic):
+The test requires every image to be bit-exact when drawn with its recorded contact segments
+and reports (and bounds) the error without them. Regenerate (deterministic):
 
 ```bash
 python3 -m venv /tmp/venv-pusht
 /tmp/venv-pusht/bin/pip install -r tools/reference/requirements-pusht.txt
 /tmp/venv-pusht/bin/python tools/reference/pusht_frames.py
+# optional exhaustive check on N random states (raw dump, not committed):
+/tmp/venv-pusht/bin/python tools/reference/pusht_frames.py --dump /tmp/pusht-dump 400
+MTE_RENDER_DUMP=/tmp/pusht-dump cargo test -p mte-sim --test render_parity -- --ignored
 ```
 {README_END}
 """

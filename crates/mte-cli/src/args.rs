@@ -47,6 +47,146 @@ pub enum Command {
     /// Work with recorded chunk streams.
     #[command(subcommand)]
     Ensemble(EnsembleCommand),
+    /// The native PushT simulator: render frames, roll out policies, measure speed.
+    #[command(subcommand)]
+    Sim(SimCommand),
+    /// Demonstration datasets.
+    #[command(subcommand)]
+    Data(DataCommand),
+}
+
+/// `mte sim ...`
+#[derive(Debug, Subcommand)]
+pub enum SimCommand {
+    /// Render the reset state of a seed to a PNG.
+    Render(SimRenderArgs),
+    /// Run a policy for one or more episodes; optionally write an animated GIF.
+    Rollout(SimRolloutArgs),
+    /// Quick throughput check of the simulator (steps/s); the benchmark of record is
+    /// `cargo bench -p mte-sim`.
+    Bench(SimBenchArgs),
+}
+
+/// `mte data ...`
+#[derive(Debug, Subcommand)]
+pub enum DataCommand {
+    /// Generate scripted-expert demonstrations on PushT.
+    Generate(DataGenerateArgs),
+}
+
+/// Which random stream a seeded reset draws from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum StreamArg {
+    /// numpy RandomState(seed): Diffusion Policy and gym-pusht <= 0.1.5.
+    Legacy,
+    /// gymnasium's PCG64 Generator: gym-pusht >= 0.1.6.
+    Pcg64,
+}
+
+impl From<StreamArg> for mte_sim::ResetStream {
+    fn from(s: StreamArg) -> Self {
+        match s {
+            StreamArg::Legacy => mte_sim::ResetStream::Legacy,
+            StreamArg::Pcg64 => mte_sim::ResetStream::Pcg64,
+        }
+    }
+}
+
+/// `mte sim render`
+#[derive(Debug, Args)]
+pub struct SimRenderArgs {
+    /// Reset seed.
+    #[arg(long, default_value_t = 100_000)]
+    pub seed: u64,
+    /// Reset stream.
+    #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
+    pub stream: StreamArg,
+    /// Output side in px: 96 is the policy's observation; larger sizes are visualisations.
+    #[arg(long, default_value_t = 96)]
+    pub size: usize,
+    /// Draw the visualisation frame (gym-pusht's `render()`) instead of the observation.
+    #[arg(long)]
+    pub vis: bool,
+    /// Output PNG file.
+    #[arg(long, short, value_name = "FILE")]
+    pub out: PathBuf,
+}
+
+/// Policies the simulator can roll out on its own.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SimPolicy {
+    /// The scripted push-primitive MPC expert.
+    Expert,
+    /// Uniform random targets in [0, 512]^2 (the peer benchmark's workload).
+    Random,
+}
+
+/// `mte sim rollout`
+#[derive(Debug, Args)]
+pub struct SimRolloutArgs {
+    /// Policy to run.
+    #[arg(long, value_enum, default_value_t = SimPolicy::Expert)]
+    pub policy: SimPolicy,
+    /// First reset seed; episode i uses seed + i.
+    #[arg(long, default_value_t = 100_000)]
+    pub seed: u64,
+    /// Number of episodes.
+    #[arg(long, default_value_t = 1)]
+    pub episodes: usize,
+    /// Reset stream.
+    #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
+    pub stream: StreamArg,
+    /// Step limit per episode (gym-pusht: 300).
+    #[arg(long, default_value_t = 300)]
+    pub max_steps: usize,
+    /// Write the first episode as an animated GIF (10 frames/s, with the action marker).
+    #[arg(long, value_name = "FILE")]
+    pub gif: Option<PathBuf>,
+    /// Side of the GIF frames (px).
+    #[arg(long, default_value_t = 256)]
+    pub gif_size: usize,
+}
+
+/// `mte sim bench`
+#[derive(Debug, Args)]
+pub struct SimBenchArgs {
+    /// Control steps to time per observation kind.
+    #[arg(long, default_value_t = 20_000)]
+    pub steps: usize,
+}
+
+/// `mte data generate`
+#[derive(Debug, Args)]
+pub struct DataGenerateArgs {
+    /// Number of episodes.
+    #[arg(long, default_value_t = 100)]
+    pub episodes: usize,
+    /// Base seed: episode i resets with seed + i (keep clear of the test seeds
+    /// 100000-100049).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Reset stream.
+    #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
+    pub stream: StreamArg,
+    /// Observations to record besides the agent position: comma-separated subset of
+    /// state, keypoints, pixels.
+    #[arg(long, default_value = "state,keypoints")]
+    pub obs: mte_data::ObsSet,
+    /// Side of recorded frames (px).
+    #[arg(long, default_value_t = 96)]
+    pub image_size: usize,
+    /// Step limit per episode.
+    #[arg(long, default_value_t = 300)]
+    pub max_steps: usize,
+    /// Uniform noise added to the expert's targets (px), for more varied demonstrations.
+    #[arg(long, default_value_t = 0.0)]
+    pub action_noise: f64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Output directory (must not already hold a dataset).
+    #[arg(long, short, value_name = "DIR")]
+    pub out: PathBuf,
 }
 
 /// `mte ensemble ...`

@@ -11,13 +11,17 @@ use std::process::ExitCode;
 
 use clap::Parser;
 
-use crate::args::{Cli, Command, EnsembleCommand};
+use crate::args::{Cli, Command, DataCommand, EnsembleCommand, SimCommand};
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match &cli.command {
         Command::Demo(a) => cmd::demo::run(&cli, a),
         Command::Ensemble(EnsembleCommand::Replay(a)) => cmd::replay::run(&cli, a),
+        Command::Sim(SimCommand::Render(a)) => cmd::sim::render(&cli, a),
+        Command::Sim(SimCommand::Rollout(a)) => cmd::sim::rollout(&cli, a),
+        Command::Sim(SimCommand::Bench(a)) => cmd::sim::bench(&cli, a),
+        Command::Data(DataCommand::Generate(a)) => cmd::data::generate(&cli, a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,4 +1,7 @@
 //! One module per subcommand: arguments in, library call, output out.
 
+pub mod data;
 pub mod demo;
+pub mod media;
 pub mod replay;
+pub mod sim;

@@ -159,3 +159,116 @@ fn replay_reads_standard_input() {
         .stdout(predicate::str::contains("{\"tau\":1,\"action\":[4.0]"))
         .stderr(predicate::str::is_empty());
 }
+
+#[test]
+fn sim_render_writes_a_png_of_the_reset_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("frame.png");
+    let stdout = mte()
+        .args([
+            "sim", "render", "--seed", "100000", "--format", "json", "--out",
+        ])
+        .arg(&out)
+        .assert()
+        .success()
+        .get_output()
+        .stdout
+        .clone();
+    let v: serde_json::Value = serde_json::from_slice(&stdout).unwrap();
+    // The Diffusion Policy test seed 100000 (legacy stream) starts with the agent at (235, 124).
+    assert_eq!(v["state"][0], 235.0);
+    assert_eq!(v["state"][1], 124.0);
+    let bytes = fs::read(&out).unwrap();
+    assert_eq!(&bytes[1..4], b"PNG");
+    let decoder = png::Decoder::new(std::io::Cursor::new(bytes));
+    let reader = decoder.read_info().unwrap();
+    assert_eq!((reader.info().width, reader.info().height), (96, 96));
+}
+
+#[test]
+fn sim_rollout_writes_an_animated_gif_and_reports_success() {
+    let dir = tempfile::tempdir().unwrap();
+    let gif = dir.path().join("out.gif");
+    let stdout = mte()
+        .args([
+            "sim", "rollout", "--policy", "expert", "--seed", "100007", "--format", "json",
+        ])
+        .args(["--gif-size", "64", "--gif"])
+        .arg(&gif)
+        .assert()
+        .success()
+        .get_output()
+        .stdout
+        .clone();
+    let v: serde_json::Value = serde_json::from_slice(&stdout).unwrap();
+    let ep = &v["episodes"][0];
+    let steps = ep["steps"].as_u64().unwrap();
+    assert!(ep["max_coverage"].as_f64().unwrap() > 0.5);
+    let bytes = fs::read(&gif).unwrap();
+    assert_eq!(&bytes[..6], b"GIF89a");
+    // One frame for the reset plus one per step: count image descriptors via the decoder.
+    let mut opts = gif::DecodeOptions::new();
+    opts.set_color_output(gif::ColorOutput::Indexed);
+    let mut dec = opts.read_info(std::io::Cursor::new(bytes)).unwrap();
+    let mut frames = 0;
+    while dec.read_next_frame().unwrap().is_some() {
+        frames += 1;
+    }
+    assert_eq!(frames as u64, steps + 1);
+}
+
+#[test]
+fn data_generate_writes_a_loadable_dataset_and_refuses_to_overwrite() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demos");
+    mte()
+        .args([
+            "data",
+            "generate",
+            "--episodes",
+            "2",
+            "--seed",
+            "3",
+            "--max-steps",
+            "15",
+        ])
+        .args([
+            "--obs",
+            "state,keypoints,pixels",
+            "--image-size",
+            "32",
+            "--out",
+        ])
+        .arg(&out)
+        .assert()
+        .success()
+        .stdout(predicate::str::contains("2 episodes"));
+    let info: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(out.join("info.json")).unwrap()).unwrap();
+    assert_eq!(info["format"], "mte-demo-v1");
+    assert_eq!(
+        info["features"]["observation.image"]["shape"],
+        serde_json::json!([32, 32, 3])
+    );
+    assert!(out.join("data/observation.environment_state.npy").exists());
+    mte()
+        .args(["data", "generate", "--episodes", "1", "--out"])
+        .arg(&out)
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("already holds a dataset"));
+}
+
+#[test]
+fn bad_sim_flags_are_clear_errors() {
+    mte()
+        .args(["data", "generate", "--obs", "state,depth", "--out", "x"])
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("depth"));
+    mte()
+        .args(["sim", "rollout", "--episodes", "0"])
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("--episodes"));
+}

@@ -12,7 +12,7 @@ use rand::SeedableRng;
 use rayon::prelude::*;
 
 use mte_sim::expert::{Expert, ExpertConfig};
-use mte_sim::render::{Renderer, Scene};
+use mte_sim::render::Renderer;
 use mte_sim::{PushT, ResetStream};
 
 use crate::dataset::{DatasetWriter, EpisodeMeta, Frame, Info};
@@ -147,12 +147,15 @@ fn run_episode(config: &GenerateConfig, i: usize) -> Result<Episode, DataError> 
         let s = env.state_obs();
         let image = match &mut renderer {
             Some(r) => {
-                let scene = Scene {
-                    agent: env.agent_pos(),
-                    block: env.block_pose(),
-                    goal: env.goal(),
-                };
-                Some(r.observation(&scene, w, h)?)
+                let mut img = vec![0u8; w * h * 3];
+                r.observation_with_contacts_into(
+                    &env.scene(),
+                    env.contact_segments(),
+                    w,
+                    h,
+                    &mut img,
+                )?;
+                Some(img)
             }
             None => None,
         };

@@ -7,6 +7,7 @@
 //! items/s = steps/s.
 
 use divan::counter::ItemsCount;
+use mte_sim::render::Renderer;
 use mte_sim::{PhysicsConfig, PushT, ResetStream};
 use rand::{Rng, SeedableRng};
 
@@ -66,5 +67,32 @@ fn state_pushing(bencher: divan::Bencher) {
             }
         }
         contacts
+    });
+}
+
+/// gym-pusht's `pixels_agent_pos` observation: each step also renders the 96 x 96 frame.
+#[divan::bench]
+fn pixels_96_uniform_actions(bencher: divan::Bencher) {
+    let mut env = PushT::default();
+    let mut renderer = Renderer::new(env.goal());
+    let mut frame = vec![0u8; 96 * 96 * 3];
+    let actions: Vec<Vec<[f64; 2]>> = (0..16).map(uniform_actions).collect();
+    let mut ep = 0u64;
+    bencher.counter(ItemsCount::new(EP_LEN)).bench_local(|| {
+        ep += 1;
+        env.reset(ep, ResetStream::Pcg64).ok();
+        let mut sum = 0u64;
+        for a in &actions[(ep % 16) as usize] {
+            if env.step(*a).is_ok() {
+                let (scene, contacts) = (env.scene(), env.contact_segments());
+                if renderer
+                    .observation_with_contacts_into(&scene, contacts, 96, 96, &mut frame)
+                    .is_ok()
+                {
+                    sum += u64::from(frame[96 * 48 * 3 + 48 * 3]);
+                }
+            }
+        }
+        sum
     });
 }

@@ -37,6 +37,7 @@ use crate::geometry::{
     AGENT_RADIUS, AGENT_SPAWN, BAR, BLOCK_COG, BLOCK_MASS, BLOCK_MOMENT, DT, GOAL, KP, KV,
     MAX_EPISODE_STEPS, Pose, STEM, SUBSTEPS, SUCCESS_THRESHOLD, WALL_RADIUS, WALLS,
 };
+use crate::render::{ContactSegment, Scene};
 use crate::rng::ResetStream;
 
 /// Largest distance from the block's centre of gravity to any of its vertices (px):
@@ -321,7 +322,8 @@ impl World {
     }
 
     /// One rapier step with the agent at `p` moving at `v`; returns the contact points.
-    fn step(&mut self, p: [f64; 2], v: [f64; 2]) -> u32 {
+    fn step(&mut self, p: [f64; 2], v: [f64; 2], segments: &mut Vec<ContactSegment>) -> u32 {
+        segments.clear();
         self.set_agent(p, v);
         let b = &mut self.bodies[self.block];
         b.set_linvel(vector![0.0, 0.0], false);
@@ -347,6 +349,19 @@ impl World {
             if pair.has_any_active_contact {
                 for m in &pair.manifolds {
                     points += m.data.solver_contacts.len() as u32;
+                    let n = m.data.normal;
+                    let (nx, ny) = (f64::from(n.x), f64::from(n.y));
+                    for c in &m.data.solver_contacts {
+                        // rapier's solver point is the midpoint of the two surface points.
+                        let h = f64::from(c.dist) / 2.0;
+                        let (px, py) = (f64::from(c.point.x), f64::from(c.point.y));
+                        let p1 = [px - nx * h, py - ny * h];
+                        let p2 = [px + nx * h, py + ny * h];
+                        segments.push([
+                            [p1[0] - 2.0 * nx, p1[1] - 2.0 * ny],
+                            [p2[0] + 2.0 * nx, p2[1] + 2.0 * ny],
+                        ]);
+                    }
                 }
             }
         }
@@ -384,6 +399,8 @@ pub struct PushT {
     block: Pose,
     steps: usize,
     last_action: Option<[f64; 2]>,
+    /// Contact markers of the last physics substep (pymunk's debug-draw segments).
+    contacts: Vec<ContactSegment>,
 }
 
 impl Default for PushT {
@@ -407,6 +424,7 @@ impl PushT {
             block,
             steps: 0,
             last_action: None,
+            contacts: Vec::new(),
         }
     }
 
@@ -491,6 +509,7 @@ impl PushT {
         self.agent_vel = snap.agent_vel;
         self.block = snap.state.block;
         self.steps = snap.steps;
+        self.contacts.clear();
         Ok(())
     }
 
@@ -519,6 +538,23 @@ impl PushT {
     /// Block body-origin pose (raw angle).
     pub fn block_pose(&self) -> Pose {
         self.block
+    }
+
+    /// The contact markers gym-pusht draws (in red) for the contacts of the last physics
+    /// substep: for each contact point, the segment from `p1 - 2n` to `p2 + 2n` (px), with
+    /// `p1`, `p2` the surface points and `n` the contact normal. rapier's contacts stand in for
+    /// Chipmunk's, so these agree only approximately.
+    pub fn contact_segments(&self) -> &[ContactSegment] {
+        &self.contacts
+    }
+
+    /// What the renderer draws: agent, block and goal.
+    pub fn scene(&self) -> Scene {
+        Scene {
+            agent: self.agent_pos,
+            block: self.block,
+            goal: self.goal,
+        }
     }
 
     /// Goal pose.
@@ -581,10 +617,12 @@ impl PushT {
         let physics_block = self.world.block_pose();
         if self.config.skip_free_flight && self.contact_impossible(&physics_block) {
             self.block = physics_block;
+            self.contacts.clear();
             return 0;
         }
         self.block = physics_block;
-        self.world.step(self.agent_pos, self.agent_vel)
+        self.world
+            .step(self.agent_pos, self.agent_vel, &mut self.contacts)
     }
 
     /// True when neither the agent nor a wall can touch the block during this substep.

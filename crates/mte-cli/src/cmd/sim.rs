@@ -7,20 +7,12 @@ use anyhow::{Context, Result, ensure};
 use rand::{Rng, SeedableRng};
 
 use mte_sim::expert::{Expert, ExpertConfig};
-use mte_sim::render::{Renderer, Scene};
+use mte_sim::render::Renderer;
 use mte_sim::{PushT, ResetStream};
 
 use crate::args::{Cli, Format, SimBenchArgs, SimPolicy, SimRenderArgs, SimRolloutArgs};
 use crate::cmd::media::{Gif, write_png};
 use crate::progress::Bar;
-
-fn scene(env: &PushT) -> Scene {
-    Scene {
-        agent: env.agent_pos(),
-        block: env.block_pose(),
-        goal: env.goal(),
-    }
-}
 
 /// `mte sim render`
 pub fn render(cli: &Cli, a: &SimRenderArgs) -> Result<()> {
@@ -34,9 +26,19 @@ pub fn render(cli: &Cli, a: &SimRenderArgs) -> Result<()> {
         .context("resetting the simulator")?;
     let mut r = Renderer::new(env.goal());
     let img = if a.vis {
-        r.visualization(&scene(&env), None, a.size, a.size)?
+        r.visualization_with_contacts(&env.scene(), env.contact_segments(), None, a.size, a.size)?
     } else {
-        r.observation(&scene(&env), a.size, a.size)?
+        {
+            let mut img = vec![0u8; a.size * a.size * 3];
+            r.observation_with_contacts_into(
+                &env.scene(),
+                env.contact_segments(),
+                a.size,
+                a.size,
+                &mut img,
+            )?;
+            img
+        }
     };
     write_png(&a.out, &img, a.size, a.size)?;
     if !cli.quiet {
@@ -93,7 +95,13 @@ pub fn rollout(cli: &Cli, a: &SimRolloutArgs) -> Result<()> {
         let (mut steps, mut success) = (0, false);
         let record = i == 0;
         if record && let (Some(g), Some(r)) = (gif.as_mut(), renderer.as_mut()) {
-            g.push(&r.visualization(&scene(&env), None, a.gif_size, a.gif_size)?)?;
+            g.push(&r.visualization_with_contacts(
+                &env.scene(),
+                env.contact_segments(),
+                None,
+                a.gif_size,
+                a.gif_size,
+            )?)?;
         }
         while steps < a.max_steps {
             let action = match a.policy {
@@ -104,7 +112,13 @@ pub fn rollout(cli: &Cli, a: &SimRolloutArgs) -> Result<()> {
             steps += 1;
             max_cov = max_cov.max(info.coverage);
             if record && let (Some(g), Some(r)) = (gif.as_mut(), renderer.as_mut()) {
-                g.push(&r.visualization(&scene(&env), Some(action), a.gif_size, a.gif_size)?)?;
+                g.push(&r.visualization_with_contacts(
+                    &env.scene(),
+                    env.contact_segments(),
+                    Some(action),
+                    a.gif_size,
+                    a.gif_size,
+                )?)?;
             }
             if info.is_success {
                 success = true;
@@ -180,7 +194,13 @@ pub fn bench(cli: &Cli, a: &SimBenchArgs) -> Result<()> {
             }
             env.step(*act)?;
             if pixels {
-                r.observation_into(&scene(&env), 96, 96, &mut img)?;
+                r.observation_with_contacts_into(
+                    &env.scene(),
+                    env.contact_segments(),
+                    96,
+                    96,
+                    &mut img,
+                )?;
             }
         }
         let sps = a.steps as f64 / t0.elapsed().as_secs_f64();

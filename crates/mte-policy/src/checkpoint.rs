@@ -1,0 +1,173 @@
+//! LeRobot-compatible checkpoints: a directory with `config.json` (LeRobot's schema) and
+//! `model.safetensors` (LeRobot's key names), with normalisation statistics either inside
+//! `model.safetensors` (old layout: `normalize_inputs.buffer_<feature>.<stat>`, …) or in
+//! the processor files of LeRobot >= 0.4 (new layout:
+//! `policy_preprocessor_step_<i>_normalizer_processor.safetensors` and
+//! `policy_postprocessor_step_<i>_unnormalizer_processor.safetensors`, flat keys
+//! `<feature>.<stat>`). We write the new layout.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+
+use crate::config::DiffusionConfig;
+use crate::error::PolicyError;
+use crate::model::{DiffusionPolicy, StatsMap};
+use crate::normalize::Stats;
+
+/// Weights file name.
+pub const WEIGHTS: &str = "model.safetensors";
+/// Config file name.
+pub const CONFIG: &str = "config.json";
+/// Normaliser statistics file we write (LeRobot 0.4 preprocessor step 3).
+pub const PRE_STATS: &str = "policy_preprocessor_step_3_normalizer_processor.safetensors";
+/// Unnormaliser statistics file we write (LeRobot 0.4 postprocessor step 0).
+pub const POST_STATS: &str = "policy_postprocessor_step_0_unnormalizer_processor.safetensors";
+
+fn ck(path: &Path, reason: impl Into<String>) -> PolicyError {
+    PolicyError::Checkpoint {
+        path: path.to_path_buf(),
+        reason: reason.into(),
+    }
+}
+
+fn read_tensors(path: &Path, device: &Device) -> Result<HashMap<String, Tensor>, PolicyError> {
+    candle_core::safetensors::load(path, device)
+        .map_err(|e| ck(path, format!("cannot read safetensors: {e}")))
+}
+
+fn set_stat(
+    stats: &mut StatsMap,
+    feature: &str,
+    stat: &str,
+    t: &Tensor,
+) -> Result<(), PolicyError> {
+    let v: Vec<f32> = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+    let s = stats.entry(feature.to_string()).or_default();
+    match stat {
+        "min" => s.min = v,
+        "max" => s.max = v,
+        "mean" => s.mean = v,
+        "std" => s.std = v,
+        _ => {}
+    }
+    Ok(())
+}
+
+/// Statistics from flat `<feature>.<stat>` keys.
+fn stats_from_flat(map: &HashMap<String, Tensor>, stats: &mut StatsMap) -> Result<(), PolicyError> {
+    for (k, t) in map {
+        if let Some((feature, stat)) = k.rsplit_once('.') {
+            set_stat(stats, feature, stat, t)?;
+        }
+    }
+    Ok(())
+}
+
+/// Statistics from the old in-model buffers `normalize_inputs.buffer_observation_state.min`
+/// (feature dots written as underscores after `buffer_`).
+fn stats_from_old(
+    map: &HashMap<String, Tensor>,
+    config: &DiffusionConfig,
+    stats: &mut StatsMap,
+) -> Result<(), PolicyError> {
+    let names: Vec<&String> = config
+        .input_features
+        .keys()
+        .chain(config.output_features.keys())
+        .collect();
+    for (k, t) in map {
+        for prefix in [
+            "normalize_inputs.buffer_",
+            "normalize_targets.buffer_",
+            "unnormalize_outputs.buffer_",
+        ] {
+            if let Some(rest) = k.strip_prefix(prefix)
+                && let Some((feat, stat)) = rest.rsplit_once('.')
+                && let Some(name) = names.iter().find(|n| n.replace('.', "_") == feat)
+            {
+                set_stat(stats, name, stat, t)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Load a checkpoint directory onto `device`. Errors name the missing or misshapen key.
+pub fn load(dir: &Path, device: &Device) -> Result<DiffusionPolicy, PolicyError> {
+    let config = DiffusionConfig::from_file(&dir.join(CONFIG))?;
+    let wpath = dir.join(WEIGHTS);
+    let weights = read_tensors(&wpath, device)?;
+    let mut stats = StatsMap::new();
+    stats_from_old(&weights, &config, &mut stats)?;
+    let mut files: Vec<_> = std::fs::read_dir(dir)
+        .map_err(|source| PolicyError::Io {
+            path: dir.to_path_buf(),
+            source,
+        })?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
+                n.ends_with(".safetensors")
+                    && (n.contains("_normalizer_processor")
+                        || n.contains("_unnormalizer_processor"))
+            })
+        })
+        .collect();
+    files.sort();
+    for f in files {
+        stats_from_flat(&read_tensors(&f, device)?, &mut stats)?;
+    }
+    let vb = VarBuilder::from_tensors(weights, DType::F32, device);
+    DiffusionPolicy::new(config, stats, vb).map_err(|e| match e {
+        PolicyError::Candle(err) => ck(&wpath, err.to_string()),
+        other => other,
+    })
+}
+
+/// Save `config`, `weights` (LeRobot key names) and `stats` as a new-layout directory.
+pub fn save(
+    dir: &Path,
+    config: &DiffusionConfig,
+    weights: &HashMap<String, Tensor>,
+    stats: &StatsMap,
+) -> Result<(), PolicyError> {
+    std::fs::create_dir_all(dir).map_err(|source| PolicyError::Io {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let json = serde_json::to_string_pretty(config).map_err(|source| PolicyError::Json {
+        path: dir.join(CONFIG),
+        source,
+    })?;
+    std::fs::write(dir.join(CONFIG), json + "\n").map_err(|source| PolicyError::Io {
+        path: dir.join(CONFIG),
+        source,
+    })?;
+    candle_core::safetensors::save(weights, dir.join(WEIGHTS))?;
+    let flat = |filter: &dyn Fn(&str) -> bool| -> Result<HashMap<String, Tensor>, PolicyError> {
+        let mut m = HashMap::new();
+        for (name, s) in stats.iter().filter(|(n, _)| filter(n)) {
+            let Stats {
+                min,
+                max,
+                mean,
+                std,
+            } = s;
+            for (stat, v) in [("min", min), ("max", max), ("mean", mean), ("std", std)] {
+                if !v.is_empty() {
+                    m.insert(
+                        format!("{name}.{stat}"),
+                        Tensor::from_vec(v.clone(), v.len(), &Device::Cpu)?,
+                    );
+                }
+            }
+        }
+        Ok(m)
+    };
+    candle_core::safetensors::save(&flat(&|_| true)?, dir.join(PRE_STATS))?;
+    candle_core::safetensors::save(&flat(&|n| n == "action")?, dir.join(POST_STATS))?;
+    Ok(())
+}

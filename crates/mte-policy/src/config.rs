@@ -1,0 +1,517 @@
+//! Diffusion Policy configuration in LeRobot's `config.json` schema (field names and meanings
+//! are LeRobot's `DiffusionConfig`), with the two presets and `validate()`.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{PolicyError, config_err};
+use crate::normalize::NormMode;
+use crate::scheduler::{BetaSchedule, PredictionType, SchedulerConfig, SchedulerKind};
+
+/// Feature kinds in LeRobot's `input_features` / `output_features`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
+pub enum FeatureType {
+    /// Camera image (C, H, W).
+    Visual,
+    /// Robot state (agent position on PushT).
+    State,
+    /// Environment state (block keypoints on PushT).
+    Env,
+    /// Action.
+    Action,
+}
+
+/// One feature: kind and shape.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PolicyFeature {
+    /// Kind.
+    #[serde(rename = "type")]
+    pub kind: FeatureType,
+    /// Shape (images: [C, H, W]).
+    pub shape: Vec<usize>,
+}
+
+/// LeRobot's `DiffusionConfig` fields that determine the network and its use.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct DiffusionConfig {
+    /// Always "diffusion" (LeRobot's registry key).
+    #[serde(rename = "type")]
+    pub kind: String,
+    /// Observation steps T_o.
+    pub n_obs_steps: usize,
+    /// Prediction horizon T_p; divisible by 2^len(down_dims).
+    pub horizon: usize,
+    /// Actions executed per query in open-loop use.
+    pub n_action_steps: usize,
+    /// Inputs by name (`observation.state`, `observation.environment_state`, `observation.image`).
+    pub input_features: BTreeMap<String, PolicyFeature>,
+    /// Outputs by name (`action`).
+    pub output_features: BTreeMap<String, PolicyFeature>,
+    /// Normalisation per feature kind (keys VISUAL, STATE, ENV, ACTION).
+    pub normalization_mapping: BTreeMap<String, NormMode>,
+    /// Vision backbone (only "resnet18").
+    pub vision_backbone: String,
+    /// Crop (H, W) of images: random in training, centre at evaluation.
+    pub crop_shape: Option<[usize; 2]>,
+    /// Random crop while training.
+    pub crop_is_random: bool,
+    /// Pretrained weights (must be null: none can be downloaded here, and GroupNorm replaces them).
+    pub pretrained_backbone_weights: Option<String>,
+    /// BatchNorm replaced by GroupNorm(C / 16).
+    pub use_group_norm: bool,
+    /// Spatial-softmax keypoints.
+    pub spatial_softmax_num_keypoints: usize,
+    /// One encoder per camera (changes the key prefix).
+    pub use_separate_rgb_encoder_per_camera: bool,
+    /// U-Net channel widths.
+    pub down_dims: Vec<usize>,
+    /// U-Net convolution kernel size.
+    pub kernel_size: usize,
+    /// GroupNorm groups in the U-Net.
+    pub n_groups: usize,
+    /// Timestep embedding width.
+    pub diffusion_step_embed_dim: usize,
+    /// FiLM with scale and bias (else bias only).
+    pub use_film_scale_modulation: bool,
+    /// "DDPM" or "DDIM".
+    pub noise_scheduler_type: String,
+    /// Diffusion steps in training.
+    pub num_train_timesteps: usize,
+    /// Beta schedule.
+    pub beta_schedule: String,
+    /// First beta (linear schedules).
+    pub beta_start: f64,
+    /// Last beta (linear schedules).
+    pub beta_end: f64,
+    /// "epsilon" or "sample".
+    pub prediction_type: String,
+    /// Clip the predicted x0.
+    pub clip_sample: bool,
+    /// Clip range.
+    pub clip_sample_range: f64,
+    /// Denoising steps at inference (None: num_train_timesteps).
+    pub num_inference_steps: Option<usize>,
+    /// Mask the loss on padded actions.
+    pub do_mask_loss_for_padding: bool,
+    /// Learning rate.
+    pub optimizer_lr: f64,
+    /// Adam betas.
+    pub optimizer_betas: [f64; 2],
+    /// Adam epsilon.
+    pub optimizer_eps: f64,
+    /// AdamW weight decay.
+    pub optimizer_weight_decay: f64,
+    /// Learning-rate schedule name.
+    pub scheduler_name: String,
+    /// Warm-up steps.
+    pub scheduler_warmup_steps: usize,
+}
+
+fn features(image: bool, env_state: bool) -> BTreeMap<String, PolicyFeature> {
+    let mut m = BTreeMap::new();
+    m.insert(
+        "observation.state".into(),
+        PolicyFeature {
+            kind: FeatureType::State,
+            shape: vec![2],
+        },
+    );
+    if image {
+        m.insert(
+            "observation.image".into(),
+            PolicyFeature {
+                kind: FeatureType::Visual,
+                shape: vec![3, 96, 96],
+            },
+        );
+    }
+    if env_state {
+        m.insert(
+            "observation.environment_state".into(),
+            PolicyFeature {
+                kind: FeatureType::Env,
+                shape: vec![16],
+            },
+        );
+    }
+    m
+}
+
+impl Default for DiffusionConfig {
+    fn default() -> Self {
+        Self::paper()
+    }
+}
+
+/// Which observation a preset conditions on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ObsKind {
+    /// 96 x 96 camera frame + agent position (LeRobot's `diffusion_pusht`).
+    Image,
+    /// 16 block keypoints + agent position.
+    Keypoints,
+}
+
+impl DiffusionConfig {
+    /// The published PushT configuration (LeRobot `diffusion_pusht`, peer-facts 3.1):
+    /// image + state, down_dims [512, 1024, 2048], horizon 16, 2 observation steps, 8 executed,
+    /// 100 DDPM steps.
+    pub fn paper() -> Self {
+        let mut norm = BTreeMap::new();
+        norm.insert("VISUAL".into(), NormMode::MeanStd);
+        norm.insert("STATE".into(), NormMode::MinMax);
+        norm.insert("ENV".into(), NormMode::MinMax);
+        norm.insert("ACTION".into(), NormMode::MinMax);
+        let mut out = BTreeMap::new();
+        out.insert(
+            "action".into(),
+            PolicyFeature {
+                kind: FeatureType::Action,
+                shape: vec![2],
+            },
+        );
+        DiffusionConfig {
+            kind: "diffusion".into(),
+            n_obs_steps: 2,
+            horizon: 16,
+            n_action_steps: 8,
+            input_features: features(true, false),
+            output_features: out,
+            normalization_mapping: norm,
+            vision_backbone: "resnet18".into(),
+            crop_shape: Some([84, 84]),
+            crop_is_random: true,
+            pretrained_backbone_weights: None,
+            use_group_norm: true,
+            spatial_softmax_num_keypoints: 32,
+            use_separate_rgb_encoder_per_camera: false,
+            down_dims: vec![512, 1024, 2048],
+            kernel_size: 5,
+            n_groups: 8,
+            diffusion_step_embed_dim: 128,
+            use_film_scale_modulation: true,
+            noise_scheduler_type: "DDPM".into(),
+            num_train_timesteps: 100,
+            beta_schedule: "squaredcos_cap_v2".into(),
+            beta_start: 1e-4,
+            beta_end: 0.02,
+            prediction_type: "epsilon".into(),
+            clip_sample: true,
+            clip_sample_range: 1.0,
+            num_inference_steps: None,
+            do_mask_loss_for_padding: false,
+            optimizer_lr: 1e-4,
+            optimizer_betas: [0.95, 0.999],
+            optimizer_eps: 1e-8,
+            optimizer_weight_decay: 1e-6,
+            scheduler_name: "cosine".into(),
+            scheduler_warmup_steps: 500,
+        }
+    }
+
+    /// The small CPU preset: same topology, narrow U-Net (down_dims [64, 128, 256], embedding
+    /// 64), 16 DDIM inference steps, trainable on 2 cores. `obs` picks the conditioning.
+    pub fn cpu(obs: ObsKind) -> Self {
+        DiffusionConfig {
+            input_features: features(obs == ObsKind::Image, obs == ObsKind::Keypoints),
+            down_dims: vec![64, 128, 256],
+            diffusion_step_embed_dim: 64,
+            noise_scheduler_type: "DDIM".into(),
+            num_inference_steps: Some(16),
+            optimizer_lr: 3e-4,
+            scheduler_warmup_steps: 200,
+            ..Self::paper()
+        }
+    }
+
+    /// Read a config file (LeRobot's `config.json` or any subset of its fields: missing fields
+    /// take the paper preset's values).
+    pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
+        let text = std::fs::read_to_string(path).map_err(|source| PolicyError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let c: DiffusionConfig =
+            serde_json::from_str(&text).map_err(|source| PolicyError::Json {
+                path: path.to_path_buf(),
+                source,
+            })?;
+        c.validate()?;
+        Ok(c)
+    }
+
+    /// Override fields of `self` with those present in the JSON object `patch`.
+    pub fn with_overrides(&self, patch: &serde_json::Value) -> Result<Self, PolicyError> {
+        let mut v = serde_json::to_value(self).map_err(|source| PolicyError::Json {
+            path: "<config>".into(),
+            source,
+        })?;
+        if let (Some(base), Some(p)) = (v.as_object_mut(), patch.as_object()) {
+            for (k, val) in p {
+                base.insert(k.clone(), val.clone());
+            }
+        } else {
+            return Err(config_err(
+                "<overrides>",
+                patch,
+                "a JSON object of config fields",
+            ));
+        }
+        let c: DiffusionConfig = serde_json::from_value(v).map_err(|source| PolicyError::Json {
+            path: "<overrides>".into(),
+            source,
+        })?;
+        c.validate()?;
+        Ok(c)
+    }
+
+    /// The action dimension.
+    pub fn action_dim(&self) -> Result<usize, PolicyError> {
+        match self.output_features.get("action") {
+            Some(f) if f.shape.len() == 1 && f.shape[0] > 0 => Ok(f.shape[0]),
+            other => Err(config_err(
+                "output_features",
+                other,
+                "an `action` feature of shape [d]",
+            )),
+        }
+    }
+
+    /// Dimension of a vector input by kind (None if absent).
+    pub fn vector_dim(&self, kind: FeatureType) -> Option<usize> {
+        self.input_features
+            .values()
+            .find(|f| f.kind == kind)
+            .and_then(|f| f.shape.first().copied())
+    }
+
+    /// The image feature, if any: (C, H, W).
+    pub fn image_shape(&self) -> Option<[usize; 3]> {
+        self.input_features
+            .values()
+            .find(|f| f.kind == FeatureType::Visual)
+            .and_then(|f| (f.shape.len() == 3).then(|| [f.shape[0], f.shape[1], f.shape[2]]))
+    }
+
+    /// Inference steps in use.
+    pub fn inference_steps(&self) -> usize {
+        self.num_inference_steps.unwrap_or(self.num_train_timesteps)
+    }
+
+    /// The noise scheduler this config describes.
+    pub fn scheduler_config(&self) -> Result<SchedulerConfig, PolicyError> {
+        let kind = match self.noise_scheduler_type.as_str() {
+            "DDPM" => SchedulerKind::Ddpm,
+            "DDIM" => SchedulerKind::Ddim,
+            other => {
+                return Err(config_err(
+                    "noise_scheduler_type",
+                    other,
+                    "\"DDPM\" or \"DDIM\"",
+                ));
+            }
+        };
+        let beta_schedule = match self.beta_schedule.as_str() {
+            "squaredcos_cap_v2" => BetaSchedule::SquaredcosCapV2,
+            "linear" => BetaSchedule::Linear,
+            "scaled_linear" => BetaSchedule::ScaledLinear,
+            other => {
+                return Err(config_err(
+                    "beta_schedule",
+                    other,
+                    "squaredcos_cap_v2, linear or scaled_linear",
+                ));
+            }
+        };
+        let prediction_type = match self.prediction_type.as_str() {
+            "epsilon" => PredictionType::Epsilon,
+            "sample" => PredictionType::Sample,
+            other => {
+                return Err(config_err(
+                    "prediction_type",
+                    other,
+                    "\"epsilon\" or \"sample\"",
+                ));
+            }
+        };
+        let base = SchedulerConfig::lerobot_pusht();
+        Ok(SchedulerConfig {
+            kind,
+            num_train_timesteps: self.num_train_timesteps,
+            beta_start: self.beta_start,
+            beta_end: self.beta_end,
+            beta_schedule,
+            prediction_type,
+            clip_sample: self.clip_sample,
+            clip_sample_range: self.clip_sample_range,
+            ..base
+        })
+    }
+
+    /// Check every field; errors name the field and what was expected.
+    pub fn validate(&self) -> Result<(), PolicyError> {
+        if self.kind != "diffusion" {
+            return Err(config_err("type", &self.kind, "\"diffusion\""));
+        }
+        if self.n_obs_steps == 0 {
+            return Err(config_err("n_obs_steps", self.n_obs_steps, ">= 1"));
+        }
+        if self.down_dims.is_empty() || self.down_dims.contains(&0) {
+            return Err(config_err(
+                "down_dims",
+                &self.down_dims,
+                "non-empty, all > 0",
+            ));
+        }
+        // LeRobot's rule (stricter than the network needs, which is 2^(len - 1)); kept so
+        // that every config we write loads in LeRobot.
+        let factor = 1usize << self.down_dims.len();
+        if self.horizon == 0 || !self.horizon.is_multiple_of(factor) {
+            return Err(config_err(
+                "horizon",
+                self.horizon,
+                format!("a positive multiple of {factor} (2^len(down_dims))"),
+            ));
+        }
+        if self.n_action_steps == 0 || self.n_action_steps + self.n_obs_steps - 1 > self.horizon {
+            return Err(config_err(
+                "n_action_steps",
+                self.n_action_steps,
+                format!(
+                    "1..={} (horizon - n_obs_steps + 1)",
+                    self.horizon + 1 - self.n_obs_steps.min(self.horizon + 1)
+                ),
+            ));
+        }
+        if self.kernel_size.is_multiple_of(2) {
+            return Err(config_err("kernel_size", self.kernel_size, "an odd number"));
+        }
+        if self.n_groups == 0 || self.down_dims.iter().any(|d| d % self.n_groups != 0) {
+            return Err(config_err(
+                "n_groups",
+                self.n_groups,
+                "a divisor of every down_dims entry",
+            ));
+        }
+        if !self.down_dims[0].is_multiple_of(8) {
+            // The final block's GroupNorm has 8 groups whatever n_groups says (as in LeRobot).
+            return Err(config_err(
+                "down_dims",
+                &self.down_dims,
+                "a first width divisible by 8",
+            ));
+        }
+        if self.diffusion_step_embed_dim < 4 || !self.diffusion_step_embed_dim.is_multiple_of(2) {
+            return Err(config_err(
+                "diffusion_step_embed_dim",
+                self.diffusion_step_embed_dim,
+                "an even number >= 4",
+            ));
+        }
+        if self.vector_dim(FeatureType::State).is_none() {
+            return Err(config_err(
+                "input_features",
+                self.input_features.keys().collect::<Vec<_>>(),
+                "an observation.state feature",
+            ));
+        }
+        if self.image_shape().is_none() && self.vector_dim(FeatureType::Env).is_none() {
+            return Err(config_err(
+                "input_features",
+                self.input_features.keys().collect::<Vec<_>>(),
+                "an image or an environment_state feature",
+            ));
+        }
+        if let Some([c, h, w]) = self.image_shape() {
+            if c != 3 {
+                return Err(config_err("input_features", [c, h, w], "3-channel images"));
+            }
+            if self.vision_backbone != "resnet18" {
+                return Err(config_err(
+                    "vision_backbone",
+                    &self.vision_backbone,
+                    "\"resnet18\"",
+                ));
+            }
+            if self.pretrained_backbone_weights.is_some() {
+                return Err(config_err(
+                    "pretrained_backbone_weights",
+                    &self.pretrained_backbone_weights,
+                    "null (no weights can be downloaded; GroupNorm would ruin them anyway)",
+                ));
+            }
+            if let Some([ch, cw]) = self.crop_shape
+                && (ch > h || cw > w || ch < 32 || cw < 32)
+            {
+                return Err(config_err(
+                    "crop_shape",
+                    [ch, cw],
+                    format!("within the {h}x{w} image, at least 32x32"),
+                ));
+            }
+        }
+        self.action_dim()?;
+        self.scheduler_config()?.validate()?;
+        if self.inference_steps() == 0 || self.inference_steps() > self.num_train_timesteps {
+            return Err(config_err(
+                "num_inference_steps",
+                self.num_inference_steps,
+                format!("1..={}", self.num_train_timesteps),
+            ));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_validate() {
+        DiffusionConfig::paper().validate().expect("paper");
+        DiffusionConfig::cpu(ObsKind::Keypoints)
+            .validate()
+            .expect("cpu keypoints");
+        DiffusionConfig::cpu(ObsKind::Image)
+            .validate()
+            .expect("cpu image");
+    }
+
+    #[test]
+    fn errors_name_the_field() {
+        let bad = DiffusionConfig {
+            horizon: 12,
+            ..DiffusionConfig::paper()
+        };
+        let e = bad
+            .validate()
+            .expect_err("12 is not a multiple of 8")
+            .to_string();
+        assert!(e.contains("horizon") && e.contains("multiple of 8"), "{e}");
+        let e = DiffusionConfig::paper()
+            .with_overrides(&serde_json::json!({"n_groups": 7}))
+            .expect_err("7 does not divide 512")
+            .to_string();
+        assert!(e.contains("n_groups"), "{e}");
+        let ok = DiffusionConfig::paper()
+            .with_overrides(&serde_json::json!({"down_dims": [32, 64]}))
+            .expect("valid override");
+        assert_eq!(ok.down_dims, vec![32, 64]);
+    }
+
+    #[test]
+    fn json_round_trip_keeps_lerobot_names() {
+        let c = DiffusionConfig::paper();
+        let v = serde_json::to_value(&c).expect("serialise");
+        assert_eq!(v["type"], "diffusion");
+        assert_eq!(v["input_features"]["observation.image"]["type"], "VISUAL");
+        assert_eq!(v["normalization_mapping"]["ACTION"], "MIN_MAX");
+        let back: DiffusionConfig = serde_json::from_value(v).expect("parse");
+        assert_eq!(back, c);
+    }
+}

@@ -1,0 +1,16 @@
+//! Chunked visuomotor policies on candle: LeRobot-compatible Diffusion Policy.
+#![forbid(unsafe_code)]
+
+pub mod checkpoint;
+pub mod config;
+pub mod error;
+pub mod model;
+pub mod normalize;
+pub mod scheduler;
+pub mod unet;
+pub mod vision;
+
+pub use config::{DiffusionConfig, ObsKind};
+pub use error::PolicyError;
+pub use model::{ChunkPolicy, DiffusionPolicy, ObsBatch, ObsGradient, Observation, StatsMap};
+pub use normalize::{NormMode, Normalizer, Stats};

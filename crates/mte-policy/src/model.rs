@@ -1,0 +1,502 @@
+//! The Diffusion Policy model: observation encoding to the global conditioning, DDPM/DDIM
+//! sampling with injected noise, the training loss, and the loss gradient with respect to the
+//! observation.
+
+use std::collections::BTreeMap;
+
+use candle_core::{D, DType, Device, Tensor, Var};
+use candle_nn::VarBuilder;
+use rand::RngCore;
+use rand_distr::{Distribution, StandardNormal};
+
+use crate::config::{DiffusionConfig, FeatureType};
+use crate::error::{PolicyError, config_err};
+use crate::normalize::{NormMode, Normalizer, Stats};
+use crate::scheduler::Scheduler;
+use crate::unet::ConditionalUnet1d;
+use crate::vision::RgbEncoder;
+
+/// One observation step, unnormalised, as the environment reports it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Observation {
+    /// Robot state (PushT: agent position, px).
+    pub state: Vec<f32>,
+    /// Environment state (PushT: 16 keypoint coordinates, px), if the policy uses it.
+    pub env_state: Option<Vec<f32>>,
+    /// Camera frame, RGB u8 HWC, if the policy uses images.
+    pub image: Option<Vec<u8>>,
+}
+
+/// Normalised observation tensors of a batch: `state (B, T_o, S)`, `env (B, T_o, E)`,
+/// `image (B T_o, 3, H, W)` in [0, 1] (normalised inside, so gradients can be taken w.r.t.
+/// pixel values).
+#[derive(Clone, Debug)]
+pub struct ObsBatch {
+    /// Normalised state.
+    pub state: Tensor,
+    /// Normalised environment state.
+    pub env: Option<Tensor>,
+    /// Images in [0, 1].
+    pub image: Option<Tensor>,
+}
+
+/// The statistics a policy needs, by feature name (LeRobot's names).
+pub type StatsMap = BTreeMap<String, Stats>;
+
+/// Diffusion Policy.
+pub struct DiffusionPolicy {
+    config: DiffusionConfig,
+    device: Device,
+    unet: ConditionalUnet1d,
+    rgb: Option<RgbEncoder>,
+    scheduler: Scheduler,
+    state_norm: Normalizer,
+    env_norm: Option<Normalizer>,
+    image_norm: Option<(Vec<f32>, Vec<f32>)>,
+    action_norm: Normalizer,
+    stats: StatsMap,
+}
+
+fn norm_for(
+    config: &DiffusionConfig,
+    stats: &StatsMap,
+    name: &'static str,
+    kind: &str,
+    dim: usize,
+) -> Result<Normalizer, PolicyError> {
+    let mode = config
+        .normalization_mapping
+        .get(kind)
+        .copied()
+        .unwrap_or(NormMode::Identity);
+    let empty = Stats::default();
+    let s = stats.get(name).unwrap_or(&empty);
+    Normalizer::new(name, mode, s, dim)
+}
+
+impl DiffusionPolicy {
+    /// Build from a config, normalisation statistics and a `VarBuilder` rooted at the model
+    /// (keys `diffusion.unet.…`, `diffusion.rgb_encoder.…`).
+    pub fn new(
+        config: DiffusionConfig,
+        stats: StatsMap,
+        vb: VarBuilder,
+    ) -> Result<Self, PolicyError> {
+        config.validate()?;
+        let device = vb.device().clone();
+        let s_dim = config.vector_dim(FeatureType::State).unwrap_or(0);
+        let e_dim = config.vector_dim(FeatureType::Env);
+        let a_dim = config.action_dim()?;
+        let vb = vb.pp("diffusion");
+        let rgb = match config.image_shape() {
+            Some(_) => Some(RgbEncoder::new(
+                config.crop_shape,
+                config.spatial_softmax_num_keypoints,
+                vb.pp("rgb_encoder"),
+            )?),
+            None => None,
+        };
+        let per_step = s_dim + rgb.as_ref().map_or(0, RgbEncoder::feature_dim) + e_dim.unwrap_or(0);
+        let unet = ConditionalUnet1d::new(&config, per_step * config.n_obs_steps, vb.pp("unet"))?;
+        let scheduler = Scheduler::new(config.scheduler_config()?)?;
+        let state_norm = norm_for(&config, &stats, "observation.state", "STATE", s_dim)?;
+        let env_norm = match e_dim {
+            Some(d) => Some(norm_for(
+                &config,
+                &stats,
+                "observation.environment_state",
+                "ENV",
+                d,
+            )?),
+            None => None,
+        };
+        let image_norm = match config.image_shape() {
+            Some(_) => match config.normalization_mapping.get("VISUAL") {
+                Some(NormMode::MeanStd) => {
+                    let s = stats.get("observation.image").cloned().unwrap_or_default();
+                    if s.mean.len() != 3 || s.std.len() != 3 {
+                        return Err(config_err(
+                            "observation.image",
+                            (&s.mean, &s.std),
+                            "3 channel means and stds",
+                        ));
+                    }
+                    Some((
+                        s.mean,
+                        s.std.iter().map(|v| v + crate::normalize::EPS).collect(),
+                    ))
+                }
+                _ => None,
+            },
+            None => None,
+        };
+        let action_norm = norm_for(&config, &stats, "action", "ACTION", a_dim)?;
+        Ok(DiffusionPolicy {
+            config,
+            device,
+            unet,
+            rgb,
+            scheduler,
+            state_norm,
+            env_norm,
+            image_norm,
+            action_norm,
+            stats,
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &DiffusionConfig {
+        &self.config
+    }
+
+    /// The device the weights live on.
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// Normalisation statistics.
+    pub fn stats(&self) -> &StatsMap {
+        &self.stats
+    }
+
+    /// The noise scheduler.
+    pub fn scheduler(&self) -> &Scheduler {
+        &self.scheduler
+    }
+
+    /// The U-Net.
+    pub fn unet(&self) -> &ConditionalUnet1d {
+        &self.unet
+    }
+
+    /// The action normaliser.
+    pub fn action_normalizer(&self) -> &Normalizer {
+        &self.action_norm
+    }
+
+    /// Normalised observation tensors for a batch of histories (each `n_obs_steps` long,
+    /// oldest first).
+    pub fn obs_batch(&self, histories: &[&[Observation]]) -> Result<ObsBatch, PolicyError> {
+        let t_o = self.config.n_obs_steps;
+        let b = histories.len();
+        let s_dim = self.state_norm.dim();
+        let mut state = Vec::with_capacity(b * t_o * s_dim);
+        let mut env = Vec::new();
+        let mut image = Vec::new();
+        let img_shape = self.config.image_shape();
+        for h in histories {
+            if h.len() != t_o {
+                return Err(PolicyError::Input {
+                    name: "history",
+                    reason: format!("{} observations, expected n_obs_steps = {t_o}", h.len()),
+                });
+            }
+            for o in h.iter() {
+                if o.state.len() != s_dim || o.state.iter().any(|v| !v.is_finite()) {
+                    return Err(PolicyError::Input {
+                        name: "observation.state",
+                        reason: format!("{:?}: expected {s_dim} finite values", o.state),
+                    });
+                }
+                let mut s = o.state.clone();
+                self.state_norm.normalize(&mut s);
+                state.extend(s);
+                if let Some(n) = &self.env_norm {
+                    match &o.env_state {
+                        Some(e) if e.len() == n.dim() && e.iter().all(|v| v.is_finite()) => {
+                            let mut e = e.clone();
+                            n.normalize(&mut e);
+                            env.extend(e);
+                        }
+                        other => {
+                            return Err(PolicyError::Input {
+                                name: "observation.environment_state",
+                                reason: format!("{other:?}: expected {} finite values", n.dim()),
+                            });
+                        }
+                    }
+                }
+                if let Some([c, hh, ww]) = img_shape {
+                    match &o.image {
+                        Some(px) if px.len() == c * hh * ww => {
+                            // HWC u8 -> CHW f32 in [0, 1].
+                            let mut chw = vec![0f32; c * hh * ww];
+                            for y in 0..hh {
+                                for x in 0..ww {
+                                    for ch in 0..c {
+                                        chw[ch * hh * ww + y * ww + x] =
+                                            f32::from(px[(y * ww + x) * c + ch]) / 255.0;
+                                    }
+                                }
+                            }
+                            image.extend(chw);
+                        }
+                        other => {
+                            return Err(PolicyError::Input {
+                                name: "observation.image",
+                                reason: format!(
+                                    "{} bytes, expected {hh}x{ww}x{c} RGB",
+                                    other.as_ref().map_or(0, Vec::len)
+                                ),
+                            });
+                        }
+                    }
+                }
+            }
+        }
+        let dev = &self.device;
+        Ok(ObsBatch {
+            state: Tensor::from_vec(state, (b, t_o, s_dim), dev)?,
+            env: match &self.env_norm {
+                Some(n) => Some(Tensor::from_vec(env, (b, t_o, n.dim()), dev)?),
+                None => None,
+            },
+            image: match img_shape {
+                Some([c, hh, ww]) => Some(Tensor::from_vec(image, (b * t_o, c, hh, ww), dev)?),
+                None => None,
+            },
+        })
+    }
+
+    /// The global conditioning `(B, n_obs_steps * per_step)`: per step [state, image
+    /// features, environment state], as LeRobot's `_prepare_global_conditioning`.
+    pub fn global_cond(&self, obs: &ObsBatch) -> Result<Tensor, PolicyError> {
+        let (b, t_o, _) = obs.state.dims3()?;
+        let mut parts = vec![obs.state.clone()];
+        if let (Some(enc), Some(img)) = (&self.rgb, &obs.image) {
+            let img = self.normalize_image(img)?;
+            let f = enc.forward(&img)?;
+            parts.push(f.reshape((b, t_o, enc.feature_dim()))?);
+        }
+        if let Some(e) = &obs.env {
+            parts.push(e.clone());
+        }
+        Ok(Tensor::cat(&parts, D::Minus1)?.flatten_from(1)?)
+    }
+
+    fn normalize_image(&self, img: &Tensor) -> Result<Tensor, PolicyError> {
+        match &self.image_norm {
+            Some((mean, std)) => {
+                let m = Tensor::from_vec(mean.clone(), (1, 3, 1, 1), &self.device)?;
+                let s = Tensor::from_vec(std.clone(), (1, 3, 1, 1), &self.device)?;
+                Ok(img.broadcast_sub(&m)?.broadcast_div(&s)?)
+            }
+            None => Ok(img.clone()),
+        }
+    }
+
+    /// Denoise from `noise` (normalised action space, `(B, horizon, action_dim)`) with
+    /// the per-step variance noise drawn from `rng` (only on steps that add noise, in
+    /// timestep order, as LeRobot draws it); returns normalised chunks.
+    pub fn sample_normalized(
+        &self,
+        cond: &Tensor,
+        noise: Tensor,
+        rng: &mut dyn RngCore,
+    ) -> Result<Tensor, PolicyError> {
+        self.sample_normalized_with(cond, noise, &mut |_, buf: &mut [f32]| {
+            for v in buf.iter_mut() {
+                *v = StandardNormal.sample(rng);
+            }
+        })
+    }
+
+    /// [`DiffusionPolicy::sample_normalized`] with the variance noise supplied by `fill(t,
+    /// buffer)`, called once per step that adds noise.
+    pub fn sample_normalized_with(
+        &self,
+        cond: &Tensor,
+        noise: Tensor,
+        fill: &mut dyn FnMut(usize, &mut [f32]),
+    ) -> Result<Tensor, PolicyError> {
+        let n = self.config.inference_steps();
+        let shape = noise.shape().clone();
+        let b = shape.dims()[0];
+        let mut x: Vec<f32> = noise.flatten_all()?.to_vec1()?;
+        let mut step_noise = vec![0f32; x.len()];
+        for t in self.scheduler.timesteps(n)? {
+            let xt = Tensor::from_vec(x.clone(), shape.clone(), &self.device)?;
+            let eps: Vec<f32> = self
+                .unet
+                .forward(&xt, &vec![t; b], cond)?
+                .flatten_all()?
+                .to_vec1()?;
+            if self.scheduler.step_adds_noise(t, n)? {
+                fill(t, &mut step_noise);
+                self.scheduler.step(&eps, t, n, &mut x, &step_noise)?;
+            } else {
+                self.scheduler.step(&eps, t, n, &mut x, &[])?;
+            }
+        }
+        Ok(Tensor::from_vec(x, shape, &self.device)?)
+    }
+
+    /// Predict one chunk (`horizon x action_dim`, row-major, unnormalised, row `r` is the
+    /// action for `t - (n_obs_steps - 1) + r`) from a history of `n_obs_steps` observations.
+    pub fn predict(
+        &self,
+        history: &[Observation],
+        rng: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError> {
+        let obs = self.obs_batch(&[history])?;
+        let cond = self.global_cond(&obs)?;
+        let (tp, d) = (self.config.horizon, self.config.action_dim()?);
+        let init: Vec<f32> = (0..tp * d).map(|_| StandardNormal.sample(rng)).collect();
+        let noise = Tensor::from_vec(init, (1, tp, d), &self.device)?;
+        let x = self.sample_normalized(&cond, noise, rng)?;
+        let mut chunk: Vec<f32> = x.flatten_all()?.to_vec1()?;
+        self.action_norm.unnormalize(&mut chunk);
+        if chunk.iter().any(|v| !v.is_finite()) {
+            return Err(PolicyError::Input {
+                name: "action",
+                reason: "sampling produced a non-finite action".into(),
+            });
+        }
+        Ok(chunk)
+    }
+
+    /// The training loss (noise-prediction MSE, mean over all elements, or over unpadded
+    /// rows when `do_mask_loss_for_padding`) for normalised actions `x0 (B, horizon, d)`,
+    /// given `eps` of the same shape and one timestep per row.
+    pub fn loss(
+        &self,
+        cond: &Tensor,
+        x0: &Tensor,
+        eps: &Tensor,
+        timesteps: &[usize],
+        pad: Option<&Tensor>,
+    ) -> Result<Tensor, PolicyError> {
+        let abar = self.scheduler.alphas_cumprod();
+        let b = timesteps.len();
+        let mut sa = Vec::with_capacity(b);
+        let mut sb = Vec::with_capacity(b);
+        for &t in timesteps {
+            let a = *abar
+                .get(t)
+                .ok_or_else(|| config_err("timestep", t, format!("< {}", abar.len())))?;
+            sa.push(a.sqrt() as f32);
+            sb.push((1.0 - a).sqrt() as f32);
+        }
+        let sa = Tensor::from_vec(sa, (b, 1, 1), &self.device)?;
+        let sb = Tensor::from_vec(sb, (b, 1, 1), &self.device)?;
+        let noisy = (x0.broadcast_mul(&sa)? + eps.broadcast_mul(&sb)?)?;
+        let pred = self.unet.forward(&noisy, timesteps, cond)?;
+        let target = match self.config.prediction_type.as_str() {
+            "sample" => x0.clone(),
+            _ => eps.clone(),
+        };
+        let se = (pred - target)?.sqr()?;
+        let loss = match (self.config.do_mask_loss_for_padding, pad) {
+            (true, Some(p)) => {
+                // p: (B, horizon) with 1 where padded.
+                let keep = (1.0 - p.to_dtype(DType::F32)?)?.unsqueeze(D::Minus1)?;
+                se.broadcast_mul(&keep)?.mean_all()?
+            }
+            _ => se.mean_all()?,
+        };
+        Ok(loss)
+    }
+
+    /// The policy's own training loss and its gradient with respect to the observation:
+    /// the normalised state (and environment state) and, for image policies, the pixel values
+    /// in [0, 1]. `x0` is the (normalised) action chunk used as the clean sample, `eps` and
+    /// `timesteps` the noise and steps (one per sample); the loss is averaged over them.
+    pub fn observation_gradient(
+        &self,
+        obs: &ObsBatch,
+        x0: &Tensor,
+        eps: &Tensor,
+        timesteps: &[usize],
+    ) -> Result<(f32, ObsGradient), PolicyError> {
+        let state = Var::from_tensor(&obs.state)?;
+        let env = match &obs.env {
+            Some(e) => Some(Var::from_tensor(e)?),
+            None => None,
+        };
+        let image = match &obs.image {
+            Some(i) => Some(Var::from_tensor(i)?),
+            None => None,
+        };
+        let batch = ObsBatch {
+            state: state.as_tensor().clone(),
+            env: env.as_ref().map(|v| v.as_tensor().clone()),
+            image: image.as_ref().map(|v| v.as_tensor().clone()),
+        };
+        let cond = self.global_cond(&batch)?;
+        let n = timesteps.len();
+        let cond = if cond.dim(0)? == 1 && n > 1 {
+            cond.repeat((n, 1))?
+        } else {
+            cond
+        };
+        let x0 = if x0.dim(0)? == 1 && n > 1 {
+            x0.repeat((n, 1, 1))?
+        } else {
+            x0.clone()
+        };
+        let loss = self.loss(&cond, &x0, eps, timesteps, None)?;
+        let grads = loss.backward()?;
+        let get = |v: &Var| -> Result<Tensor, PolicyError> {
+            Ok(match grads.get(v.as_tensor()) {
+                Some(g) => g.clone(),
+                None => v.as_tensor().zeros_like()?,
+            })
+        };
+        Ok((
+            loss.to_scalar::<f32>()?,
+            ObsGradient {
+                state: get(&state)?,
+                env: env.as_ref().map(get).transpose()?,
+                image: image.as_ref().map(get).transpose()?,
+            },
+        ))
+    }
+}
+
+/// Gradients of the loss with respect to the observation tensors of an [`ObsBatch`].
+#[derive(Clone, Debug)]
+pub struct ObsGradient {
+    /// d loss / d normalised state.
+    pub state: Tensor,
+    /// d loss / d normalised environment state.
+    pub env: Option<Tensor>,
+    /// d loss / d pixel value in [0, 1].
+    pub image: Option<Tensor>,
+}
+
+/// A chunked policy as the evaluation runner sees it: a history of `n_obs_steps`
+/// observations in, one chunk of `horizon x action_dim` actions out; randomness injected.
+pub trait ChunkPolicy {
+    /// Rows per chunk (T_p).
+    fn horizon(&self) -> usize;
+    /// Observations per query (T_o).
+    fn n_obs_steps(&self) -> usize;
+    /// Action dimension.
+    fn action_dim(&self) -> usize;
+    /// Predict a chunk (row-major, unnormalised; row `r` is for time `t - (T_o - 1) + r`).
+    fn predict_chunk(
+        &self,
+        history: &[Observation],
+        rng: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError>;
+}
+
+impl ChunkPolicy for DiffusionPolicy {
+    fn horizon(&self) -> usize {
+        self.config.horizon
+    }
+    fn n_obs_steps(&self) -> usize {
+        self.config.n_obs_steps
+    }
+    fn action_dim(&self) -> usize {
+        self.action_norm.dim()
+    }
+    fn predict_chunk(
+        &self,
+        history: &[Observation],
+        rng: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError> {
+        self.predict(history, rng)
+    }
+}

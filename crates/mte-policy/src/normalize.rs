@@ -1,0 +1,175 @@
+//! LeRobot's normalisation modes (`MEAN_STD`, `MIN_MAX`, `IDENTITY`), per feature.
+//!
+//! `MEAN_STD`: `(x - mean) / (std + 1e-8)`. `MIN_MAX`: `2 (x - min) / (max - min + 1e-8) - 1`,
+//! mapping [min, max] to [-1, 1]; the inverse is `(y + 1) / 2 (max - min + 1e-8) + min`.
+//! (LeRobot's processor substitutes the epsilon only where `max == min`; with f32 stats the
+//! two agree to ~1e-8 relative, far below anything a policy can resolve.)
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{PolicyError, config_err};
+
+/// LeRobot's epsilon in both modes.
+pub const EPS: f32 = 1e-8;
+
+/// How a feature is normalised (LeRobot's `normalization_mapping` values).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
+pub enum NormMode {
+    /// `(x - mean) / (std + eps)`.
+    MeanStd,
+    /// To [-1, 1] from [min, max].
+    MinMax,
+    /// Unchanged.
+    Identity,
+}
+
+/// Statistics of one feature, one value per coordinate (per channel for images).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct Stats {
+    /// Coordinate-wise minimum.
+    #[serde(default)]
+    pub min: Vec<f32>,
+    /// Coordinate-wise maximum.
+    #[serde(default)]
+    pub max: Vec<f32>,
+    /// Coordinate-wise mean.
+    #[serde(default)]
+    pub mean: Vec<f32>,
+    /// Coordinate-wise standard deviation.
+    #[serde(default)]
+    pub std: Vec<f32>,
+}
+
+/// A normaliser for one feature of dimension `dim` (images: channels, applied per pixel).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Normalizer {
+    mode: NormMode,
+    /// Per coordinate: y = (x - offset) * scale - shift.
+    offset: Vec<f32>,
+    scale: Vec<f32>,
+    shift: f32,
+}
+
+impl Normalizer {
+    /// Build from `stats`; the statistics the mode needs must have `dim` finite entries.
+    pub fn new(
+        name: &'static str,
+        mode: NormMode,
+        stats: &Stats,
+        dim: usize,
+    ) -> Result<Self, PolicyError> {
+        let check = |v: &Vec<f32>, what: &str| -> Result<(), PolicyError> {
+            if v.len() != dim || v.iter().any(|x| !x.is_finite()) {
+                return Err(config_err(
+                    name,
+                    format!("{what} = {v:?}"),
+                    format!("{dim} finite values"),
+                ));
+            }
+            Ok(())
+        };
+        match mode {
+            NormMode::Identity => Ok(Normalizer {
+                mode,
+                offset: vec![0.0; dim],
+                scale: vec![1.0; dim],
+                shift: 0.0,
+            }),
+            NormMode::MeanStd => {
+                check(&stats.mean, "mean")?;
+                check(&stats.std, "std")?;
+                Ok(Normalizer {
+                    mode,
+                    offset: stats.mean.clone(),
+                    scale: stats.std.iter().map(|s| 1.0 / (s + EPS)).collect(),
+                    shift: 0.0,
+                })
+            }
+            NormMode::MinMax => {
+                check(&stats.min, "min")?;
+                check(&stats.max, "max")?;
+                Ok(Normalizer {
+                    mode,
+                    offset: stats.min.clone(),
+                    scale: stats
+                        .min
+                        .iter()
+                        .zip(&stats.max)
+                        .map(|(lo, hi)| 2.0 / (hi - lo + EPS))
+                        .collect(),
+                    shift: 1.0,
+                })
+            }
+        }
+    }
+
+    /// The mode.
+    pub fn mode(&self) -> NormMode {
+        self.mode
+    }
+
+    /// Coordinates per row.
+    pub fn dim(&self) -> usize {
+        self.offset.len()
+    }
+
+    /// Normalise rows of `dim` values in place.
+    pub fn normalize(&self, x: &mut [f32]) {
+        let d = self.dim();
+        for (i, v) in x.iter_mut().enumerate() {
+            let k = i % d;
+            *v = (*v - self.offset[k]) * self.scale[k] - self.shift;
+        }
+    }
+
+    /// Undo [`Normalizer::normalize`] in place.
+    pub fn unnormalize(&self, y: &mut [f32]) {
+        let d = self.dim();
+        for (i, v) in y.iter_mut().enumerate() {
+            let k = i % d;
+            *v = (*v + self.shift) / self.scale[k] + self.offset[k];
+        }
+    }
+
+    /// d(normalised)/d(raw) per coordinate (to move gradients between the two spaces).
+    pub fn scale(&self) -> &[f32] {
+        &self.scale
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn min_max_maps_to_unit_interval_and_back() {
+        let s = Stats {
+            min: vec![12.0, 25.0],
+            max: vec![511.0, 511.0],
+            ..Default::default()
+        };
+        let n = Normalizer::new("action", NormMode::MinMax, &s, 2).expect("valid");
+        let mut x = vec![12.0, 511.0, 261.5, 268.0];
+        n.normalize(&mut x);
+        assert!((x[0] + 1.0).abs() < 1e-6 && (x[1] - 1.0).abs() < 1e-6);
+        assert!(x[2].abs() < 1e-6 && x[3].abs() < 1e-6);
+        n.unnormalize(&mut x);
+        assert!((x[2] - 261.5).abs() < 1e-4 && (x[1] - 511.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn mean_std_and_errors() {
+        let s = Stats {
+            mean: vec![0.5],
+            std: vec![0.25],
+            ..Default::default()
+        };
+        let n = Normalizer::new("image", NormMode::MeanStd, &s, 1).expect("valid");
+        let mut x = vec![1.0];
+        n.normalize(&mut x);
+        assert!((x[0] - 2.0).abs() < 1e-6);
+        let e = Normalizer::new("state", NormMode::MinMax, &s, 1).expect_err("no min");
+        assert!(e.to_string().contains("state"), "{e}");
+    }
+}

@@ -1,0 +1,287 @@
+//! The conditional U-Net 1D with FiLM (LeRobot's `DiffusionConditionalUnet1d`, Diffusion
+//! Policy's `ConditionalUnet1D` without local conditioning), as named structs whose
+//! `VarBuilder` prefixes reproduce LeRobot's state-dict keys under `diffusion.unet.`.
+//!
+//! Tensors: the sample is `(B, T, D)` (time-major, as LeRobot passes it), transposed to
+//! `(B, D, T)` inside; the timestep is an integer per batch row; the global conditioning is
+//! `(B, n_obs_steps * per_step_dim)`.
+
+use candle_core::{D, Device, Module, Result, Tensor};
+use candle_nn::{
+    Conv1d, Conv1dConfig, ConvTranspose1d, ConvTranspose1dConfig, GroupNorm, Linear, VarBuilder,
+};
+
+use crate::config::DiffusionConfig;
+
+/// GroupNorm epsilon (torch's default).
+const GN_EPS: f64 = 1e-5;
+
+/// Conv1d -> GroupNorm -> Mish (`DiffusionConv1dBlock`; keys `block.0`, `block.1`).
+#[derive(Clone, Debug)]
+pub struct Conv1dBlock {
+    conv: Conv1d,
+    norm: GroupNorm,
+}
+
+impl Conv1dBlock {
+    fn new(cin: usize, cout: usize, k: usize, groups: usize, vb: VarBuilder) -> Result<Self> {
+        let cfg = Conv1dConfig {
+            padding: k / 2,
+            ..Default::default()
+        };
+        let conv = candle_nn::conv1d(cin, cout, k, cfg, vb.pp("block.0"))?;
+        let norm = candle_nn::group_norm(groups, cout, GN_EPS, vb.pp("block.1"))?;
+        Ok(Conv1dBlock { conv, norm })
+    }
+
+    /// `(B, C_in, T)` -> `(B, C_out, T)`.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        candle_nn::ops::mish(&self.norm.forward(&self.conv.forward(x)?)?)
+    }
+}
+
+/// FiLM-conditioned residual block (`DiffusionConditionalResidualBlock1d`).
+#[derive(Clone, Debug)]
+pub struct ResidualBlock {
+    conv1: Conv1dBlock,
+    cond_encoder: Linear,
+    conv2: Conv1dBlock,
+    residual_conv: Option<Conv1d>,
+    out_channels: usize,
+    film_scale: bool,
+}
+
+impl ResidualBlock {
+    fn new(
+        cin: usize,
+        cout: usize,
+        cond_dim: usize,
+        c: &DiffusionConfig,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        let conv1 = Conv1dBlock::new(cin, cout, c.kernel_size, c.n_groups, vb.pp("conv1"))?;
+        let cond_ch = if c.use_film_scale_modulation {
+            2 * cout
+        } else {
+            cout
+        };
+        let cond_encoder = candle_nn::linear(cond_dim, cond_ch, vb.pp("cond_encoder.1"))?;
+        let conv2 = Conv1dBlock::new(cout, cout, c.kernel_size, c.n_groups, vb.pp("conv2"))?;
+        let residual_conv = if cin != cout {
+            Some(candle_nn::conv1d(
+                cin,
+                cout,
+                1,
+                Conv1dConfig::default(),
+                vb.pp("residual_conv"),
+            )?)
+        } else {
+            None
+        };
+        Ok(ResidualBlock {
+            conv1,
+            cond_encoder,
+            conv2,
+            residual_conv,
+            out_channels: cout,
+            film_scale: c.use_film_scale_modulation,
+        })
+    }
+
+    /// `x`: `(B, C_in, T)`, `cond`: `(B, cond_dim)` -> `(B, C_out, T)`.
+    pub fn forward(&self, x: &Tensor, cond: &Tensor) -> Result<Tensor> {
+        let out = self.conv1.forward(x)?;
+        let emb = self
+            .cond_encoder
+            .forward(&candle_nn::ops::mish(cond)?)?
+            .unsqueeze(D::Minus1)?;
+        let out = if self.film_scale {
+            let scale = emb.narrow(1, 0, self.out_channels)?;
+            let bias = emb.narrow(1, self.out_channels, self.out_channels)?;
+            out.broadcast_mul(&scale)?.broadcast_add(&bias)?
+        } else {
+            out.broadcast_add(&emb)?
+        };
+        let out = self.conv2.forward(&out)?;
+        let res = match &self.residual_conv {
+            Some(c) => c.forward(x)?,
+            None => x.clone(),
+        };
+        out + res
+    }
+}
+
+/// One down level: two residual blocks and an optional stride-2 convolution.
+#[derive(Clone, Debug)]
+struct Down {
+    res1: ResidualBlock,
+    res2: ResidualBlock,
+    downsample: Option<Conv1d>,
+}
+
+/// One up level: two residual blocks on (x ++ skip) and a transposed convolution.
+#[derive(Clone, Debug)]
+struct Up {
+    res1: ResidualBlock,
+    res2: ResidualBlock,
+    upsample: Option<ConvTranspose1d>,
+}
+
+/// The conditional U-Net.
+#[derive(Clone, Debug)]
+pub struct ConditionalUnet1d {
+    embed_dim: usize,
+    step_lin1: Linear,
+    step_lin2: Linear,
+    down: Vec<Down>,
+    mid: Vec<ResidualBlock>,
+    up: Vec<Up>,
+    final_block: Conv1dBlock,
+    final_conv: Conv1d,
+}
+
+impl ConditionalUnet1d {
+    /// Build (or load, depending on `vb`) the U-Net for `global_cond_dim` conditioning values.
+    pub fn new(c: &DiffusionConfig, global_cond_dim: usize, vb: VarBuilder) -> Result<Self> {
+        let e = c.diffusion_step_embed_dim;
+        let action_dim = c
+            .action_dim()
+            .map_err(|err| candle_core::Error::Msg(err.to_string()))?;
+        let step_lin1 = candle_nn::linear(e, 4 * e, vb.pp("diffusion_step_encoder.1"))?;
+        let step_lin2 = candle_nn::linear(4 * e, e, vb.pp("diffusion_step_encoder.3"))?;
+        let cond_dim = e + global_cond_dim;
+        let mut in_out = vec![(action_dim, c.down_dims[0])];
+        for w in c.down_dims.windows(2) {
+            in_out.push((w[0], w[1]));
+        }
+        let mut down = Vec::new();
+        for (i, &(cin, cout)) in in_out.iter().enumerate() {
+            let vbi = vb.pp(format!("down_modules.{i}"));
+            let is_last = i + 1 >= in_out.len();
+            down.push(Down {
+                res1: ResidualBlock::new(cin, cout, cond_dim, c, vbi.pp("0"))?,
+                res2: ResidualBlock::new(cout, cout, cond_dim, c, vbi.pp("1"))?,
+                downsample: if is_last {
+                    None
+                } else {
+                    let cfg = Conv1dConfig {
+                        padding: 1,
+                        stride: 2,
+                        ..Default::default()
+                    };
+                    Some(candle_nn::conv1d(cout, cout, 3, cfg, vbi.pp("2"))?)
+                },
+            });
+        }
+        let last = *c.down_dims.last().unwrap_or(&1);
+        let mid = (0..2)
+            .map(|j| ResidualBlock::new(last, last, cond_dim, c, vb.pp(format!("mid_modules.{j}"))))
+            .collect::<Result<Vec<_>>>()?;
+        let mut up = Vec::new();
+        for (i, &(cout, cin)) in in_out[1..].iter().rev().enumerate() {
+            let vbi = vb.pp(format!("up_modules.{i}"));
+            // LeRobot's `is_last` test never fires for the up path: every level upsamples.
+            let is_last = i + 1 >= in_out.len();
+            up.push(Up {
+                res1: ResidualBlock::new(2 * cin, cout, cond_dim, c, vbi.pp("0"))?,
+                res2: ResidualBlock::new(cout, cout, cond_dim, c, vbi.pp("1"))?,
+                upsample: if is_last {
+                    None
+                } else {
+                    let cfg = ConvTranspose1dConfig {
+                        padding: 1,
+                        stride: 2,
+                        ..Default::default()
+                    };
+                    Some(candle_nn::conv_transpose1d(
+                        cout,
+                        cout,
+                        4,
+                        cfg,
+                        vbi.pp("2"),
+                    )?)
+                },
+            });
+        }
+        let d0 = c.down_dims[0];
+        // LeRobot builds this block without passing `n_groups`: it always has 8 groups.
+        let final_block = Conv1dBlock::new(d0, d0, c.kernel_size, 8, vb.pp("final_conv.0"))?;
+        let final_conv = candle_nn::conv1d(
+            d0,
+            action_dim,
+            1,
+            Conv1dConfig::default(),
+            vb.pp("final_conv.1"),
+        )?;
+        Ok(ConditionalUnet1d {
+            embed_dim: e,
+            step_lin1,
+            step_lin2,
+            down,
+            mid,
+            up,
+            final_block,
+            final_conv,
+        })
+    }
+
+    /// Sinusoidal embedding of integer timesteps: `(B,)` -> `(B, embed_dim)`, first half sin,
+    /// second half cos, frequencies `exp(-ln(10000) k / (half - 1))`.
+    pub fn timestep_embedding(&self, timesteps: &[usize], device: &Device) -> Result<Tensor> {
+        let half = self.embed_dim / 2;
+        let scale = (10000f64).ln() / (half as f64 - 1.0);
+        let mut data = Vec::with_capacity(timesteps.len() * self.embed_dim);
+        for &t in timesteps {
+            // torch computes the frequencies in float32; so do we.
+            let freqs: Vec<f32> = (0..half)
+                .map(|k| (k as f32 * -(scale as f32)).exp())
+                .collect();
+            data.extend(freqs.iter().map(|f| (t as f32 * f).sin()));
+            data.extend(freqs.iter().map(|f| (t as f32 * f).cos()));
+        }
+        Tensor::from_vec(data, (timesteps.len(), self.embed_dim), device)
+    }
+
+    /// The timestep encoder's output (`diffusion_step_encoder`: sinusoid, Linear, Mish,
+    /// Linear): `(B, embed_dim)`.
+    pub fn step_encoder(&self, timesteps: &[usize], device: &Device) -> Result<Tensor> {
+        let emb = self.timestep_embedding(timesteps, device)?;
+        self.step_lin2
+            .forward(&candle_nn::ops::mish(&self.step_lin1.forward(&emb)?)?)
+    }
+
+    /// Predict from `x` `(B, T, D)` at `timesteps` (one per row) with `global_cond`
+    /// `(B, G)`; returns `(B, T, D)`.
+    pub fn forward(&self, x: &Tensor, timesteps: &[usize], global_cond: &Tensor) -> Result<Tensor> {
+        let emb = self
+            .step_encoder(timesteps, x.device())?
+            .to_dtype(x.dtype())?;
+        let cond = Tensor::cat(&[&emb, global_cond], D::Minus1)?;
+        let mut h = x.transpose(1, 2)?.contiguous()?;
+        let mut skips = Vec::with_capacity(self.down.len());
+        for d in &self.down {
+            h = d.res1.forward(&h, &cond)?;
+            h = d.res2.forward(&h, &cond)?;
+            skips.push(h.clone());
+            if let Some(ds) = &d.downsample {
+                h = ds.forward(&h)?;
+            }
+        }
+        for m in &self.mid {
+            h = m.forward(&h, &cond)?;
+        }
+        for u in &self.up {
+            let skip = skips
+                .pop()
+                .ok_or_else(|| candle_core::Error::Msg("U-Net skip underflow".into()))?;
+            h = Tensor::cat(&[&h, &skip], 1)?;
+            h = u.res1.forward(&h, &cond)?;
+            h = u.res2.forward(&h, &cond)?;
+            if let Some(us) = &u.upsample {
+                h = us.forward(&h)?;
+            }
+        }
+        let h = self.final_conv.forward(&self.final_block.forward(&h)?)?;
+        h.transpose(1, 2)?.contiguous()
+    }
+}

@@ -1,0 +1,227 @@
+//! LeRobot's `DiffusionRgbEncoder`: centre/random crop, torchvision ResNet-18 without its
+//! last two children, every BatchNorm replaced by GroupNorm(C / 16), spatial softmax with a
+//! 1x1 keypoint convolution, then Linear + ReLU. Keys mirror LeRobot's under
+//! `diffusion.rgb_encoder.` (`backbone.0` conv1, `backbone.1` norm1, `backbone.4..7` layers
+//! 1-4, `pool.nets`, `out`).
+//!
+//! Input: `(B, 3, H, W)` normalised images; output `(B, 2 * num_keypoints)`.
+
+use candle_core::{Module, Result, Tensor};
+use candle_nn::{Conv2d, Conv2dConfig, GroupNorm, Linear, VarBuilder};
+
+const GN_EPS: f64 = 1e-5;
+
+fn conv(
+    cin: usize,
+    cout: usize,
+    k: usize,
+    stride: usize,
+    pad: usize,
+    vb: VarBuilder,
+) -> Result<Conv2d> {
+    let cfg = Conv2dConfig {
+        padding: pad,
+        stride,
+        ..Default::default()
+    };
+    candle_nn::conv2d_no_bias(cin, cout, k, cfg, vb)
+}
+
+fn gn(c: usize, vb: VarBuilder) -> Result<GroupNorm> {
+    candle_nn::group_norm(c / 16, c, GN_EPS, vb)
+}
+
+/// torchvision's `BasicBlock` with GroupNorm.
+#[derive(Clone, Debug)]
+pub struct BasicBlock {
+    conv1: Conv2d,
+    bn1: GroupNorm,
+    conv2: Conv2d,
+    bn2: GroupNorm,
+    downsample: Option<(Conv2d, GroupNorm)>,
+}
+
+impl BasicBlock {
+    fn new(cin: usize, cout: usize, stride: usize, vb: VarBuilder) -> Result<Self> {
+        let downsample = if stride != 1 || cin != cout {
+            Some((
+                conv(cin, cout, 1, stride, 0, vb.pp("downsample.0"))?,
+                gn(cout, vb.pp("downsample.1"))?,
+            ))
+        } else {
+            None
+        };
+        Ok(BasicBlock {
+            conv1: conv(cin, cout, 3, stride, 1, vb.pp("conv1"))?,
+            bn1: gn(cout, vb.pp("bn1"))?,
+            conv2: conv(cout, cout, 3, 1, 1, vb.pp("conv2"))?,
+            bn2: gn(cout, vb.pp("bn2"))?,
+            downsample,
+        })
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let out = self.bn1.forward(&self.conv1.forward(x)?)?.relu()?;
+        let out = self.bn2.forward(&self.conv2.forward(&out)?)?;
+        let id = match &self.downsample {
+            Some((c, n)) => n.forward(&c.forward(x)?)?,
+            None => x.clone(),
+        };
+        (out + id)?.relu()
+    }
+}
+
+/// The RGB encoder.
+#[derive(Clone, Debug)]
+pub struct RgbEncoder {
+    conv1: Conv2d,
+    bn1: GroupNorm,
+    layers: Vec<Vec<BasicBlock>>,
+    keypoints: Conv2d,
+    out: Linear,
+    crop: Option<[usize; 2]>,
+    num_kp: usize,
+}
+
+impl RgbEncoder {
+    /// Build/load for images cropped to `crop` (None: full image) with `num_kp` keypoints.
+    pub fn new(crop: Option<[usize; 2]>, num_kp: usize, vb: VarBuilder) -> Result<Self> {
+        let b = vb.pp("backbone");
+        let mut layers = Vec::new();
+        let widths = [64, 128, 256, 512];
+        let mut cin = 64;
+        for (i, &w) in widths.iter().enumerate() {
+            let stride = if i == 0 { 1 } else { 2 };
+            let lb = b.pp(4 + i);
+            layers.push(vec![
+                BasicBlock::new(cin, w, stride, lb.pp("0"))?,
+                BasicBlock::new(w, w, 1, lb.pp("1"))?,
+            ]);
+            cin = w;
+        }
+        let keypoints =
+            candle_nn::conv2d(512, num_kp, 1, Conv2dConfig::default(), vb.pp("pool.nets"))?;
+        Ok(RgbEncoder {
+            conv1: conv(3, 64, 7, 2, 3, b.pp("0"))?,
+            bn1: gn(64, b.pp("1"))?,
+            layers,
+            keypoints,
+            out: candle_nn::linear(2 * num_kp, 2 * num_kp, vb.pp("out"))?,
+            crop,
+            num_kp,
+        })
+    }
+
+    /// Output width (2 x keypoints).
+    pub fn feature_dim(&self) -> usize {
+        2 * self.num_kp
+    }
+
+    /// The crop offset torchvision's `CenterCrop` takes: round((size - crop) / 2).
+    pub fn center_offset(size: usize, crop: usize) -> usize {
+        ((size - crop) as f64 / 2.0).round() as usize
+    }
+
+    /// Crop `(B, C, H, W)` at (top, left) to the configured crop (no-op without one).
+    pub fn crop_at(&self, x: &Tensor, top: usize, left: usize) -> Result<Tensor> {
+        match self.crop {
+            Some([ch, cw]) => x.narrow(2, top, ch)?.narrow(3, left, cw),
+            None => Ok(x.clone()),
+        }
+    }
+
+    /// Evaluation forward: centre crop, backbone, spatial softmax, Linear, ReLU.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let (_, _, h, w) = x.dims4()?;
+        let x = match self.crop {
+            Some([ch, cw]) => {
+                self.crop_at(x, Self::center_offset(h, ch), Self::center_offset(w, cw))?
+            }
+            None => x.clone(),
+        };
+        self.forward_cropped(&x)
+    }
+
+    /// Forward on an already cropped batch (training applies its own random crops).
+    pub fn forward_cropped(&self, x: &Tensor) -> Result<Tensor> {
+        Ok(self.forward_parts(x)?.feature)
+    }
+
+    /// The backbone's activation after the stem (conv, norm, ReLU, max pool) and after each
+    /// of the four layers, for a cropped batch.
+    pub fn backbone_stages(&self, x: &Tensor) -> Result<Vec<Tensor>> {
+        let h = self.bn1.forward(&self.conv1.forward(x)?)?.relu()?;
+        let mut h = h
+            .pad_with_zeros(2, 1, 1)?
+            .pad_with_zeros(3, 1, 1)?
+            .max_pool2d_with_stride(3, 2)?;
+        let mut out = vec![h.clone()];
+        for layer in &self.layers {
+            for block in layer {
+                h = block.forward(&h)?;
+            }
+            out.push(h.clone());
+        }
+        Ok(out)
+    }
+
+    /// The intermediate activations of [`RgbEncoder::forward_cropped`]: the backbone's
+    /// feature map `(B, 512, h, w)`, the spatial-softmax keypoints `(B, K, 2)` and the
+    /// output feature `(B, 2K)` (for monitors, probes and attacks).
+    pub fn forward_parts(&self, x: &Tensor) -> Result<EncoderParts> {
+        let h = self.bn1.forward(&self.conv1.forward(x)?)?.relu()?;
+        // Max pool 3x3, stride 2, padding 1: after ReLU every value is >= 0, so zero padding
+        // is equivalent to torch's -inf padding.
+        let mut h = h
+            .pad_with_zeros(2, 1, 1)?
+            .pad_with_zeros(3, 1, 1)?
+            .max_pool2d_with_stride(3, 2)?;
+        for layer in &self.layers {
+            for block in layer {
+                h = block.forward(&h)?;
+            }
+        }
+        let f = self.keypoints.forward(&h)?;
+        let (b, k, fh, fw) = f.dims4()?;
+        let att = candle_nn::ops::softmax_last_dim(&f.reshape((b * k, fh * fw))?)?;
+        let grid = pos_grid(fh, fw, x.device())?.to_dtype(f.dtype())?;
+        let keypoints = att.matmul(&grid)?.reshape((b, k, 2))?;
+        let feature = self.out.forward(&keypoints.reshape((b, k * 2))?)?.relu()?;
+        Ok(EncoderParts {
+            feature_map: h,
+            keypoints,
+            feature,
+        })
+    }
+}
+
+/// Intermediate activations of the encoder.
+#[derive(Clone, Debug)]
+pub struct EncoderParts {
+    /// Backbone output `(B, 512, h, w)`.
+    pub feature_map: Tensor,
+    /// Spatial-softmax keypoints `(B, K, 2)`, (x, y) in [-1, 1].
+    pub keypoints: Tensor,
+    /// Final feature `(B, 2K)` after Linear + ReLU.
+    pub feature: Tensor,
+}
+
+/// LeRobot's `pos_grid` buffer: `(H W, 2)` rows (x, y) from meshgrid(linspace(-1, 1, W),
+/// linspace(-1, 1, H)), row-major over (y, x).
+pub fn pos_grid(h: usize, w: usize, device: &candle_core::Device) -> Result<Tensor> {
+    let lin = |n: usize, i: usize| {
+        if n == 1 {
+            -1.0
+        } else {
+            -1.0 + 2.0 * i as f64 / (n - 1) as f64
+        }
+    };
+    let mut v = Vec::with_capacity(h * w * 2);
+    for y in 0..h {
+        for x in 0..w {
+            v.push(lin(w, x) as f32);
+            v.push(lin(h, y) as f32);
+        }
+    }
+    Tensor::from_vec(v, (h * w, 2), device)
+}

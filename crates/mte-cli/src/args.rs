@@ -53,6 +53,66 @@ pub enum Command {
     /// Demonstration datasets.
     #[command(subcommand)]
     Data(DataCommand),
+    /// Train policies.
+    #[command(subcommand)]
+    Train(TrainCommand),
+}
+
+/// `mte train ...`
+#[derive(Debug, Subcommand)]
+pub enum TrainCommand {
+    /// Train Diffusion Policy on an `mte data generate` dataset.
+    Diffusion(TrainDiffusionArgs),
+}
+
+/// Model presets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum PresetArg {
+    /// The published PushT configuration (down_dims 512/1024/2048, 100 DDPM steps): for GPUs.
+    Paper,
+    /// Small U-Net (64/128/256), 16 DDIM steps: trains on 2 CPU cores.
+    Cpu,
+}
+
+/// Observation a policy conditions on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum PolicyObsArg {
+    /// 16 block keypoints + agent position.
+    Keypoints,
+    /// 96 x 96 frame + agent position.
+    Image,
+}
+
+/// `mte train diffusion`
+#[derive(Debug, Args)]
+pub struct TrainDiffusionArgs {
+    /// Dataset directory (from `mte data generate`).
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Model preset.
+    #[arg(long, value_enum, default_value_t = PresetArg::Cpu)]
+    pub preset: PresetArg,
+    /// Observation to condition on.
+    #[arg(long, value_enum, default_value_t = PolicyObsArg::Keypoints)]
+    pub obs: PolicyObsArg,
+    /// JSON file of config fields overriding the preset (LeRobot's config.json names).
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Optimiser steps.
+    #[arg(long, default_value_t = 20_000)]
+    pub steps: usize,
+    /// Batch size (windows).
+    #[arg(long, default_value_t = 64)]
+    pub batch_size: usize,
+    /// Seed of every random draw.
+    #[arg(long, default_value_t = 100_000)]
+    pub seed: u64,
+    /// Checkpoint every this many steps.
+    #[arg(long, default_value_t = 2_000)]
+    pub checkpoint_every: usize,
+    /// Output directory; if it holds a training state, training resumes from it.
+    #[arg(long, short, value_name = "DIR")]
+    pub out: PathBuf,
 }
 
 /// `mte sim ...`

@@ -213,13 +213,14 @@ impl DiffusionConfig {
         }
     }
 
-    /// The small CPU preset: same topology, narrow U-Net (down_dims [64, 128, 256], embedding
-    /// 64), 16 DDIM inference steps, trainable on 2 cores. `obs` picks the conditioning.
+    /// The small CPU preset: same topology, narrow U-Net (down_dims [32, 64, 128], embedding
+    /// 32), 16 DDIM inference steps: ~0.23 s per batch-64 training step on 2 cores (measured),
+    /// so ~15k steps an hour. `obs` picks the conditioning.
     pub fn cpu(obs: ObsKind) -> Self {
         DiffusionConfig {
             input_features: features(obs == ObsKind::Image, obs == ObsKind::Keypoints),
-            down_dims: vec![64, 128, 256],
-            diffusion_step_embed_dim: 64,
+            down_dims: vec![32, 64, 128],
+            diffusion_step_embed_dim: 32,
             noise_scheduler_type: "DDIM".into(),
             num_inference_steps: Some(16),
             optimizer_lr: 3e-4,

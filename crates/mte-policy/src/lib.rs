@@ -7,6 +7,7 @@ pub mod error;
 pub mod model;
 pub mod normalize;
 pub mod scheduler;
+pub mod train;
 pub mod unet;
 pub mod vision;
 

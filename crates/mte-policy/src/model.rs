@@ -260,13 +260,52 @@ impl DiffusionPolicy {
     }
 
     /// The global conditioning `(B, n_obs_steps * per_step)`: per step [state, image
-    /// features, environment state], as LeRobot's `_prepare_global_conditioning`.
+    /// features, environment state], as LeRobot's `_prepare_global_conditioning`. Images are
+    /// full frames and get the evaluation centre crop.
     pub fn global_cond(&self, obs: &ObsBatch) -> Result<Tensor, PolicyError> {
+        self.global_cond_impl(obs, false)
+    }
+
+    /// [`DiffusionPolicy::global_cond`] for images that are already cropped (training's
+    /// random crops).
+    pub fn global_cond_cropped(&self, obs: &ObsBatch) -> Result<Tensor, PolicyError> {
+        self.global_cond_impl(obs, true)
+    }
+
+    /// A batch from raw (unnormalised) state and environment-state rows, `B x n_obs_steps`
+    /// of each, normalised with this policy's statistics; no images.
+    pub fn normalized_obs_batch(
+        &self,
+        mut state: Vec<f32>,
+        env: Option<Vec<f32>>,
+        b: usize,
+    ) -> Result<ObsBatch, PolicyError> {
+        let t_o = self.config.n_obs_steps;
+        self.state_norm.normalize(&mut state);
+        let env = match (env, &self.env_norm) {
+            (Some(mut e), Some(n)) => {
+                n.normalize(&mut e);
+                Some(Tensor::from_vec(e, (b, t_o, n.dim()), &self.device)?)
+            }
+            _ => None,
+        };
+        Ok(ObsBatch {
+            state: Tensor::from_vec(state, (b, t_o, self.state_norm.dim()), &self.device)?,
+            env,
+            image: None,
+        })
+    }
+
+    fn global_cond_impl(&self, obs: &ObsBatch, cropped: bool) -> Result<Tensor, PolicyError> {
         let (b, t_o, _) = obs.state.dims3()?;
         let mut parts = vec![obs.state.clone()];
         if let (Some(enc), Some(img)) = (&self.rgb, &obs.image) {
             let img = self.normalize_image(img)?;
-            let f = enc.forward(&img)?;
+            let f = if cropped {
+                enc.forward_cropped(&img)?
+            } else {
+                enc.forward(&img)?
+            };
             parts.push(f.reshape((b, t_o, enc.feature_dim()))?);
         }
         if let Some(e) = &obs.env {
@@ -278,8 +317,10 @@ impl DiffusionPolicy {
     fn normalize_image(&self, img: &Tensor) -> Result<Tensor, PolicyError> {
         match &self.image_norm {
             Some((mean, std)) => {
-                let m = Tensor::from_vec(mean.clone(), (1, 3, 1, 1), &self.device)?;
-                let s = Tensor::from_vec(std.clone(), (1, 3, 1, 1), &self.device)?;
+                let m = Tensor::from_vec(mean.clone(), (1, 3, 1, 1), &self.device)?
+                    .to_dtype(img.dtype())?;
+                let s = Tensor::from_vec(std.clone(), (1, 3, 1, 1), &self.device)?
+                    .to_dtype(img.dtype())?;
                 Ok(img.broadcast_sub(&m)?.broadcast_div(&s)?)
             }
             None => Ok(img.clone()),
@@ -378,8 +419,8 @@ impl DiffusionPolicy {
             sa.push(a.sqrt() as f32);
             sb.push((1.0 - a).sqrt() as f32);
         }
-        let sa = Tensor::from_vec(sa, (b, 1, 1), &self.device)?;
-        let sb = Tensor::from_vec(sb, (b, 1, 1), &self.device)?;
+        let sa = Tensor::from_vec(sa, (b, 1, 1), &self.device)?.to_dtype(x0.dtype())?;
+        let sb = Tensor::from_vec(sb, (b, 1, 1), &self.device)?.to_dtype(x0.dtype())?;
         let noisy = (x0.broadcast_mul(&sa)? + eps.broadcast_mul(&sb)?)?;
         let pred = self.unet.forward(&noisy, timesteps, cond)?;
         let target = match self.config.prediction_type.as_str() {
@@ -390,7 +431,7 @@ impl DiffusionPolicy {
         let loss = match (self.config.do_mask_loss_for_padding, pad) {
             (true, Some(p)) => {
                 // p: (B, horizon) with 1 where padded.
-                let keep = (1.0 - p.to_dtype(DType::F32)?)?.unsqueeze(D::Minus1)?;
+                let keep = (1.0 - p.to_dtype(x0.dtype())?)?.unsqueeze(D::Minus1)?;
                 se.broadcast_mul(&keep)?.mean_all()?
             }
             _ => se.mean_all()?,
@@ -444,7 +485,7 @@ impl DiffusionPolicy {
             })
         };
         Ok((
-            loss.to_scalar::<f32>()?,
+            loss.to_dtype(DType::F32)?.to_scalar::<f32>()?,
             ObsGradient {
                 state: get(&state)?,
                 env: env.as_ref().map(get).transpose()?,

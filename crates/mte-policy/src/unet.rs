@@ -7,29 +7,110 @@
 //! `(B, n_obs_steps * per_step_dim)`.
 
 use candle_core::{D, Device, Module, Result, Tensor};
-use candle_nn::{
-    Conv1d, Conv1dConfig, ConvTranspose1d, ConvTranspose1dConfig, GroupNorm, Linear, VarBuilder,
-};
+use candle_nn::{GroupNorm, Linear, VarBuilder};
 
 use crate::config::DiffusionConfig;
 
 /// GroupNorm epsilon (torch's default).
 const GN_EPS: f64 = 1e-5;
 
+/// `nn.Conv1d` computed as im2col plus one matrix product: candle's direct CPU convolution
+/// (and its backward pass) is several times slower than its gemm for the short sequences
+/// (T <= 16) and wide channels of the U-Net. Weights as torch stores them: `weight
+/// (C_out, C_in, k)`, `bias (C_out)`.
+#[derive(Clone, Debug)]
+pub struct Conv1dGemm {
+    weight: Tensor,
+    bias: Tensor,
+    stride: usize,
+    pad: usize,
+}
+
+impl Conv1dGemm {
+    fn new(
+        cin: usize,
+        cout: usize,
+        k: usize,
+        stride: usize,
+        pad: usize,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        // torch's default init: kaiming-uniform with a = sqrt(5), i.e. U(-1/sqrt(fan_in), ..).
+        let bound = 1.0 / ((cin * k) as f64).sqrt();
+        let init = candle_nn::Init::Uniform {
+            lo: -bound,
+            up: bound,
+        };
+        Ok(Conv1dGemm {
+            weight: vb.get_with_hints((cout, cin, k), "weight", init)?,
+            bias: vb.get_with_hints(cout, "bias", init)?,
+            stride,
+            pad,
+        })
+    }
+
+    /// `(B, C_in, T)` -> `(B, C_out, T_out)`.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let (b, c, t) = x.dims3()?;
+        let (cout, _, k) = self.weight.dims3()?;
+        let xp = if self.pad > 0 {
+            x.pad_with_zeros(2, self.pad, self.pad)?
+        } else {
+            x.clone()
+        };
+        let full = t + 2 * self.pad - k + 1;
+        let cols = if k == 1 {
+            xp.unsqueeze(2)?
+        } else {
+            let taps: Vec<Tensor> = (0..k)
+                .map(|j| xp.narrow(2, j, full))
+                .collect::<Result<_>>()?;
+            Tensor::stack(&taps, 2)?
+        };
+        // cols: (B, C, k, full) -> keep every `stride`-th output position.
+        let (cols, t_out) = if self.stride > 1 {
+            let t_out = (full - 1) / self.stride + 1;
+            let padded = t_out * self.stride;
+            let cols = if padded > full {
+                cols.pad_with_zeros(3, 0, padded - full)?
+            } else {
+                cols
+            };
+            (
+                cols.reshape((b, c, k, t_out, self.stride))?
+                    .narrow(4, 0, 1)?
+                    .squeeze(4)?,
+                t_out,
+            )
+        } else {
+            (cols, full)
+        };
+        // One (C_out, C k) x (C k, B T) product: no per-batch copies of the weight.
+        let cols = cols
+            .reshape((b, c * k, t_out))?
+            .transpose(0, 1)?
+            .contiguous()?
+            .reshape((c * k, b * t_out))?;
+        let w = self.weight.reshape((cout, c * k))?;
+        let y = w
+            .matmul(&cols)?
+            .reshape((cout, b, t_out))?
+            .transpose(0, 1)?
+            .contiguous()?;
+        y.broadcast_add(&self.bias.reshape((1, cout, 1))?)
+    }
+}
+
 /// Conv1d -> GroupNorm -> Mish (`DiffusionConv1dBlock`; keys `block.0`, `block.1`).
 #[derive(Clone, Debug)]
 pub struct Conv1dBlock {
-    conv: Conv1d,
+    conv: Conv1dGemm,
     norm: GroupNorm,
 }
 
 impl Conv1dBlock {
     fn new(cin: usize, cout: usize, k: usize, groups: usize, vb: VarBuilder) -> Result<Self> {
-        let cfg = Conv1dConfig {
-            padding: k / 2,
-            ..Default::default()
-        };
-        let conv = candle_nn::conv1d(cin, cout, k, cfg, vb.pp("block.0"))?;
+        let conv = Conv1dGemm::new(cin, cout, k, 1, k / 2, vb.pp("block.0"))?;
         let norm = candle_nn::group_norm(groups, cout, GN_EPS, vb.pp("block.1"))?;
         Ok(Conv1dBlock { conv, norm })
     }
@@ -46,7 +127,7 @@ pub struct ResidualBlock {
     conv1: Conv1dBlock,
     cond_encoder: Linear,
     conv2: Conv1dBlock,
-    residual_conv: Option<Conv1d>,
+    residual_conv: Option<Conv1dGemm>,
     out_channels: usize,
     film_scale: bool,
 }
@@ -68,13 +149,7 @@ impl ResidualBlock {
         let cond_encoder = candle_nn::linear(cond_dim, cond_ch, vb.pp("cond_encoder.1"))?;
         let conv2 = Conv1dBlock::new(cout, cout, c.kernel_size, c.n_groups, vb.pp("conv2"))?;
         let residual_conv = if cin != cout {
-            Some(candle_nn::conv1d(
-                cin,
-                cout,
-                1,
-                Conv1dConfig::default(),
-                vb.pp("residual_conv"),
-            )?)
+            Some(Conv1dGemm::new(cin, cout, 1, 1, 0, vb.pp("residual_conv"))?)
         } else {
             None
         };
@@ -116,7 +191,7 @@ impl ResidualBlock {
 struct Down {
     res1: ResidualBlock,
     res2: ResidualBlock,
-    downsample: Option<Conv1d>,
+    downsample: Option<Conv1dGemm>,
 }
 
 /// One up level: two residual blocks on (x ++ skip) and a transposed convolution.
@@ -124,7 +199,59 @@ struct Down {
 struct Up {
     res1: ResidualBlock,
     res2: ResidualBlock,
-    upsample: Option<ConvTranspose1d>,
+    upsample: Option<Upsample>,
+}
+
+/// `nn.ConvTranspose1d(C, C, 4, stride 2, padding 1)` written as zero insertion plus an
+/// ordinary convolution with the flipped, transposed kernel, because candle has no backward
+/// pass for `conv_transpose1d` (training and observation gradients need one). Weights are
+/// stored as torch stores them: `weight (C_in, C_out, 4)`, `bias (C_out)`.
+#[derive(Clone, Debug)]
+pub struct Upsample {
+    weight: Tensor,
+    bias: Tensor,
+    k: usize,
+}
+
+impl Upsample {
+    fn new(cin: usize, cout: usize, k: usize, vb: VarBuilder) -> Result<Self> {
+        // Same initialisation bounds as torch's ConvTranspose1d (kaiming-uniform, a = sqrt 5).
+        let bound = 1.0 / ((cout * k) as f64).sqrt();
+        let init = candle_nn::Init::Uniform {
+            lo: -bound,
+            up: bound,
+        };
+        Ok(Upsample {
+            weight: vb.get_with_hints((cin, cout, k), "weight", init)?,
+            bias: vb.get_with_hints(cout, "bias", init)?,
+            k,
+        })
+    }
+
+    /// `(B, C_in, T)` -> `(B, C_out, 2T)`.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let (b, c, t) = x.dims3()?;
+        // Insert a zero after every sample: (B, C, 2T - 1).
+        let z = Tensor::cat(&[&x.unsqueeze(3)?, &x.zeros_like()?.unsqueeze(3)?], 3)?
+            .reshape((b, c, 2 * t))?
+            .narrow(2, 0, 2 * t - 1)?;
+        // Flip the kernel and swap in/out channels: W'[o, i, j] = W[i, o, k - 1 - j].
+        let rev: Vec<u32> = (0..self.k as u32).rev().collect();
+        let idx = Tensor::from_vec(rev, self.k, x.device())?;
+        let w = self
+            .weight
+            .transpose(0, 1)?
+            .contiguous()?
+            .index_select(&idx, 2)?;
+        // Padding k - 1 - p = 2 on both sides gives length 2T.
+        let conv = Conv1dGemm {
+            weight: w,
+            bias: self.bias.clone(),
+            stride: 1,
+            pad: self.k - 2,
+        };
+        conv.forward(&z)
+    }
 }
 
 /// The conditional U-Net.
@@ -137,7 +264,7 @@ pub struct ConditionalUnet1d {
     mid: Vec<ResidualBlock>,
     up: Vec<Up>,
     final_block: Conv1dBlock,
-    final_conv: Conv1d,
+    final_conv: Conv1dGemm,
 }
 
 impl ConditionalUnet1d {
@@ -164,12 +291,7 @@ impl ConditionalUnet1d {
                 downsample: if is_last {
                     None
                 } else {
-                    let cfg = Conv1dConfig {
-                        padding: 1,
-                        stride: 2,
-                        ..Default::default()
-                    };
-                    Some(candle_nn::conv1d(cout, cout, 3, cfg, vbi.pp("2"))?)
+                    Some(Conv1dGemm::new(cout, cout, 3, 2, 1, vbi.pp("2"))?)
                 },
             });
         }
@@ -188,31 +310,14 @@ impl ConditionalUnet1d {
                 upsample: if is_last {
                     None
                 } else {
-                    let cfg = ConvTranspose1dConfig {
-                        padding: 1,
-                        stride: 2,
-                        ..Default::default()
-                    };
-                    Some(candle_nn::conv_transpose1d(
-                        cout,
-                        cout,
-                        4,
-                        cfg,
-                        vbi.pp("2"),
-                    )?)
+                    Some(Upsample::new(cout, cout, 4, vbi.pp("2"))?)
                 },
             });
         }
         let d0 = c.down_dims[0];
         // LeRobot builds this block without passing `n_groups`: it always has 8 groups.
         let final_block = Conv1dBlock::new(d0, d0, c.kernel_size, 8, vb.pp("final_conv.0"))?;
-        let final_conv = candle_nn::conv1d(
-            d0,
-            action_dim,
-            1,
-            Conv1dConfig::default(),
-            vb.pp("final_conv.1"),
-        )?;
+        let final_conv = Conv1dGemm::new(d0, action_dim, 1, 1, 0, vb.pp("final_conv.1"))?;
         Ok(ConditionalUnet1d {
             embed_dim: e,
             step_lin1,
@@ -245,7 +350,9 @@ impl ConditionalUnet1d {
     /// The timestep encoder's output (`diffusion_step_encoder`: sinusoid, Linear, Mish,
     /// Linear): `(B, embed_dim)`.
     pub fn step_encoder(&self, timesteps: &[usize], device: &Device) -> Result<Tensor> {
-        let emb = self.timestep_embedding(timesteps, device)?;
+        let emb = self
+            .timestep_embedding(timesteps, device)?
+            .to_dtype(self.step_lin1.weight().dtype())?;
         self.step_lin2
             .forward(&candle_nn::ops::mish(&self.step_lin1.forward(&emb)?)?)
     }
@@ -283,5 +390,36 @@ impl ConditionalUnet1d {
         }
         let h = self.final_conv.forward(&self.final_block.forward(&h)?)?;
         h.transpose(1, 2)?.contiguous()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::DType;
+
+    #[test]
+    fn upsample_equals_conv_transpose() {
+        let dev = Device::Cpu;
+        let vm = candle_nn::VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        let up = Upsample::new(3, 5, 4, vb).expect("init");
+        let x = Tensor::randn(0f32, 1.0, (2, 3, 7), &dev).expect("x");
+        let native = x
+            .conv_transpose1d(&up.weight, 1, 0, 2, 1, 1)
+            .expect("native")
+            .broadcast_add(&up.bias.reshape((1, 5, 1)).expect("b"))
+            .expect("bias");
+        let ours = up.forward(&x).expect("ours");
+        assert_eq!(ours.dims(), &[2, 5, 14]);
+        let d: f32 = (ours - native)
+            .expect("diff")
+            .abs()
+            .expect("abs")
+            .max_all()
+            .expect("max")
+            .to_scalar()
+            .expect("s");
+        assert!(d < 1e-5, "{d}");
     }
 }

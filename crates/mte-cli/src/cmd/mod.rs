@@ -5,3 +5,4 @@ pub mod demo;
 pub mod media;
 pub mod replay;
 pub mod sim;
+pub mod train;

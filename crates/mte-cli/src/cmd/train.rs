@@ -1,0 +1,143 @@
+//! `mte train diffusion`.
+
+use std::io::Write as _;
+
+use anyhow::{Context, Result};
+use candle_core::Device;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use mte_data::Dataset;
+use mte_data::dataset::names;
+use mte_policy::config::{DiffusionConfig, ObsKind};
+use mte_policy::train::{TrainConfig, TrainData, stats_from, train};
+
+use crate::args::{Cli, Format, PolicyObsArg, PresetArg, TrainDiffusionArgs};
+
+/// `mte train diffusion`
+pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
+    let obs = match a.obs {
+        PolicyObsArg::Keypoints => ObsKind::Keypoints,
+        PolicyObsArg::Image => ObsKind::Image,
+    };
+    let mut config = match a.preset {
+        PresetArg::Cpu => DiffusionConfig::cpu(obs),
+        PresetArg::Paper => {
+            let mut c = DiffusionConfig::paper();
+            if obs == ObsKind::Keypoints {
+                c.input_features = DiffusionConfig::cpu(obs).input_features;
+            }
+            c
+        }
+    };
+    if let Some(path) = &a.config {
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let patch: serde_json::Value =
+            serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+        config = config.with_overrides(&patch)?;
+    }
+    config.validate().context("check the preset and --config")?;
+    let ds =
+        Dataset::load(&a.data).with_context(|| format!("loading dataset {}", a.data.display()))?;
+    let need = |name: &str| -> Result<Vec<f32>> {
+        Ok(ds
+            .feature(name)
+            .with_context(|| format!("the policy needs `{name}`: regenerate with --obs"))?
+            .to_vec())
+    };
+    let env_state = if obs == ObsKind::Keypoints {
+        Some(need(names::ENV_STATE)?)
+    } else {
+        None
+    };
+    let images = if obs == ObsKind::Image {
+        let shape = &ds
+            .info
+            .features
+            .get(names::IMAGE)
+            .context("the dataset has no images: regenerate with --obs pixels")?
+            .shape;
+        anyhow::ensure!(
+            config.image_shape() == Some([3, shape[0], shape[1]]),
+            "dataset images are {}x{}, the policy expects {:?} (C, H, W)",
+            shape[0],
+            shape[1],
+            config.image_shape()
+        );
+        ds.images.clone()
+    } else {
+        None
+    };
+    let stats = stats_from(ds.stats.iter().map(|(k, s)| {
+        (
+            k.clone(),
+            s.min.clone(),
+            s.max.clone(),
+            s.mean.clone(),
+            s.std.clone(),
+        )
+    }));
+    let data = TrainData {
+        state: need(names::STATE)?,
+        env_state,
+        images,
+        action: need(names::ACTION)?,
+        episode_lengths: ds.episode_lengths(),
+        episode_success: ds.episodes.iter().map(|e| e.success).collect(),
+        stats,
+    };
+    let tc = TrainConfig {
+        steps: a.steps,
+        batch_size: a.batch_size,
+        seed: a.seed,
+        checkpoint_every: a.checkpoint_every,
+        ..TrainConfig::default()
+    };
+    let show =
+        !cli.no_progress && !cli.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let bar = ProgressBar::with_draw_target(
+        Some(a.steps as u64),
+        if show {
+            ProgressDrawTarget::stderr()
+        } else {
+            ProgressDrawTarget::hidden()
+        },
+    );
+    bar.set_style(
+        ProgressStyle::with_template(
+            "train [{elapsed_precise}] {wide_bar} {pos}/{len} {msg} ({eta} left)",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let report = train(
+        &config,
+        &tc,
+        &data,
+        &a.out,
+        &Device::Cpu,
+        &|step, loss, lr| {
+            bar.set_position(step as u64);
+            if step % 10 == 0 {
+                bar.set_message(format!("loss {loss:.4} lr {lr:.2e}"));
+            }
+        },
+    )?;
+    bar.finish_and_clear();
+    let mut out = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(out, "{}", serde_json::to_string(&report)?)?,
+        Format::Text => {
+            if !cli.quiet {
+                writeln!(
+                    out,
+                    "trained {} steps (now at {}) in {:.0} s, final loss {:.4} -> {}",
+                    report.steps_run,
+                    report.step,
+                    report.seconds,
+                    report.final_loss,
+                    a.out.display()
+                )?;
+            }
+        }
+    }
+    Ok(())
+}

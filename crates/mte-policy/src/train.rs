@@ -1,0 +1,431 @@
+//! Training Diffusion Policy on an `mte-demo-v1` dataset: AdamW, cosine learning rate with
+//! linear warm-up, global gradient-norm clipping, an exponential moving average of the weights,
+//! random crops for images, all randomness from one seeded ChaCha stream (windows, noise,
+//! timesteps, crops), periodic checkpoints and resume.
+//!
+//! Resume restores the weights, the EMA and the step, and re-seeds the data stream from
+//! `(seed, step)`; AdamW's moment estimates are not saved (candle does not expose them), so a
+//! resumed run re-estimates them over its first few hundred steps. This is stated in the
+//! checkpoint's `training_state.json`.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+
+use crate::checkpoint;
+use crate::config::{DiffusionConfig, FeatureType};
+use crate::error::{PolicyError, config_err};
+use crate::model::{DiffusionPolicy, ObsBatch, StatsMap};
+use crate::normalize::Stats;
+
+/// Training settings (the model's own settings, e.g. learning rate, are in the config).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TrainConfig {
+    /// Optimiser steps in total.
+    pub steps: usize,
+    /// Windows per batch.
+    pub batch_size: usize,
+    /// Global gradient-norm clip (LeRobot PushT: 10).
+    pub grad_clip: f64,
+    /// EMA decay ceiling; the decay ramps as min(max, (1 + step) / (10 + step)). None: no EMA.
+    pub ema_max_decay: Option<f64>,
+    /// Seed of every random draw.
+    pub seed: u64,
+    /// Write a checkpoint every this many steps (0: only at the end).
+    pub checkpoint_every: usize,
+    /// Only train on windows of successful episodes.
+    pub successful_only: bool,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            steps: 20_000,
+            batch_size: 64,
+            grad_clip: 10.0,
+            ema_max_decay: Some(0.999),
+            seed: 100_000,
+            checkpoint_every: 2_000,
+            successful_only: false,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Check every field.
+    pub fn validate(&self) -> Result<(), PolicyError> {
+        if self.steps == 0 {
+            return Err(config_err("steps", self.steps, ">= 1"));
+        }
+        if self.batch_size == 0 {
+            return Err(config_err("batch_size", self.batch_size, ">= 1"));
+        }
+        if !(self.grad_clip.is_finite() && self.grad_clip > 0.0) {
+            return Err(config_err(
+                "grad_clip",
+                self.grad_clip,
+                "a finite number > 0",
+            ));
+        }
+        if let Some(d) = self.ema_max_decay
+            && !(0.0..1.0).contains(&d)
+        {
+            return Err(config_err("ema_max_decay", d, "in [0, 1)"));
+        }
+        Ok(())
+    }
+}
+
+/// The arrays training reads, frames first (see `mte_data::Dataset`).
+#[derive(Clone, Debug)]
+pub struct TrainData {
+    /// Agent state per frame (frames x state_dim).
+    pub state: Vec<f32>,
+    /// Environment state per frame, if the policy uses it.
+    pub env_state: Option<Vec<f32>>,
+    /// Images per frame, HWC u8, if the policy uses them.
+    pub images: Option<Vec<u8>>,
+    /// Actions per frame (frames x action_dim).
+    pub action: Vec<f32>,
+    /// Frames per episode, in storage order.
+    pub episode_lengths: Vec<usize>,
+    /// Whether each episode succeeded.
+    pub episode_success: Vec<bool>,
+    /// Normalisation statistics by feature name.
+    pub stats: StatsMap,
+}
+
+/// Progress callback: (step, loss, learning rate).
+pub type Progress<'a> = &'a (dyn Fn(usize, f32, f64) + Sync);
+
+/// What a finished run reports.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct TrainReport {
+    /// Steps run in this invocation.
+    pub steps_run: usize,
+    /// Final step.
+    pub step: usize,
+    /// Mean loss over the last 100 steps.
+    pub final_loss: f32,
+    /// Wall time of this invocation (s).
+    pub seconds: f64,
+}
+
+/// Learning rate at `step`: linear warm-up to `lr`, then cosine decay to 0 at `total`.
+pub fn learning_rate(lr: f64, warmup: usize, total: usize, step: usize) -> f64 {
+    if step < warmup {
+        return lr * (step + 1) as f64 / warmup as f64;
+    }
+    let progress = (step - warmup) as f64 / (total.saturating_sub(warmup)).max(1) as f64;
+    lr * 0.5 * (1.0 + (std::f64::consts::PI * progress.min(1.0)).cos())
+}
+
+struct Windows {
+    /// (episode start frame, episode length, window offset) per window.
+    index: Vec<(usize, usize, isize)>,
+}
+
+fn windows(data: &TrainData, c: &DiffusionConfig, successful_only: bool) -> Windows {
+    let pad_before = (c.n_obs_steps - 1) as isize;
+    let pad_after = (c.n_action_steps - 1) as isize;
+    let mut index = Vec::new();
+    let mut start = 0;
+    for (e, &len) in data.episode_lengths.iter().enumerate() {
+        if !successful_only || data.episode_success.get(e).copied().unwrap_or(false) {
+            let last = len as isize - c.horizon as isize + pad_after;
+            for s in -pad_before..=last {
+                index.push((start, len, s));
+            }
+        }
+        start += len;
+    }
+    Windows { index }
+}
+
+/// Train from scratch, or resume from `out` if it holds a training state. Checkpoints go to
+/// `out/checkpoints/<step>/` and the final (EMA) policy to `out/`.
+pub fn train(
+    config: &DiffusionConfig,
+    train: &TrainConfig,
+    data: &TrainData,
+    out: &Path,
+    device: &Device,
+    progress: Progress,
+) -> Result<TrainReport, PolicyError> {
+    config.validate()?;
+    train.validate()?;
+    let t0 = std::time::Instant::now();
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, device);
+    let policy = DiffusionPolicy::new(config.clone(), data.stats.clone(), vb)?;
+    let mut step = 0usize;
+    let state_path = out.join("training_state.json");
+    let mut ema: Option<HashMap<String, Tensor>> = None;
+    if state_path.exists() {
+        let text = std::fs::read_to_string(&state_path).map_err(|source| PolicyError::Io {
+            path: state_path.clone(),
+            source,
+        })?;
+        let st: serde_json::Value =
+            serde_json::from_str(&text).map_err(|source| PolicyError::Json {
+                path: state_path.clone(),
+                source,
+            })?;
+        step = st["step"].as_u64().unwrap_or(0) as usize;
+        let raw = out.join("raw_model.safetensors");
+        let tensors = candle_core::safetensors::load(&raw, device)?;
+        for (name, var) in varmap
+            .data()
+            .lock()
+            .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?
+            .iter()
+        {
+            let t = tensors.get(name).ok_or_else(|| PolicyError::Checkpoint {
+                path: raw.clone(),
+                reason: format!("missing {name}"),
+            })?;
+            var.set(t)?;
+        }
+        if train.ema_max_decay.is_some() {
+            ema = Some(candle_core::safetensors::load(
+                out.join(checkpoint::WEIGHTS),
+                device,
+            )?);
+        }
+    }
+    let vars: Vec<(String, Var)> = {
+        let data = varmap
+            .data()
+            .lock()
+            .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
+        let mut v: Vec<(String, Var)> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v
+    };
+    if train.ema_max_decay.is_some() && ema.is_none() {
+        ema = Some(
+            vars.iter()
+                .map(|(k, v)| Ok((k.clone(), v.as_tensor().copy()?)))
+                .collect::<Result<HashMap<_, _>, PolicyError>>()?,
+        );
+    }
+    let params = ParamsAdamW {
+        lr: config.optimizer_lr,
+        beta1: config.optimizer_betas[0],
+        beta2: config.optimizer_betas[1],
+        eps: config.optimizer_eps,
+        weight_decay: config.optimizer_weight_decay,
+    };
+    let mut opt = AdamW::new(vars.iter().map(|(_, v)| v.clone()).collect(), params)?;
+    let win = windows(data, config, train.successful_only);
+    if win.index.is_empty() {
+        return Err(config_err(
+            "dataset",
+            data.episode_lengths.len(),
+            "episodes long enough for one window",
+        ));
+    }
+    let s_dim = config.vector_dim(FeatureType::State).unwrap_or(0);
+    let e_dim = config.vector_dim(FeatureType::Env);
+    let a_dim = config.action_dim()?;
+    let image = config.image_shape();
+    let (t_o, tp, b) = (config.n_obs_steps, config.horizon, train.batch_size);
+    let steps_at_start = step;
+    let mut recent = std::collections::VecDeque::new();
+    while step < train.steps {
+        let mut rng = ChaCha8Rng::seed_from_u64(
+            train.seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        let mut st = Vec::with_capacity(b * t_o * s_dim);
+        let mut env = Vec::new();
+        let mut act = Vec::with_capacity(b * tp * a_dim);
+        let mut imgs: Vec<f32> = Vec::new();
+        let (crop_h, crop_w) = match (image, config.crop_shape) {
+            (Some(_), Some([h, w])) => (h, w),
+            (Some([_, h, w]), None) => (h, w),
+            _ => (0, 0),
+        };
+        for _ in 0..b {
+            let (start, len, off) = win.index[rng.random_range(0..win.index.len())];
+            let frame = |k: isize| start + (off + k).clamp(0, len as isize - 1) as usize;
+            for k in 0..t_o as isize {
+                let f = frame(k);
+                st.extend_from_slice(&data.state[f * s_dim..(f + 1) * s_dim]);
+                if let (Some(d), Some(e)) = (e_dim, &data.env_state) {
+                    env.extend_from_slice(&e[f * d..(f + 1) * d]);
+                }
+                if let (Some([c, h, w]), Some(px)) = (image, &data.images) {
+                    let (top, left) = if config.crop_is_random {
+                        (
+                            rng.random_range(0..=h - crop_h),
+                            rng.random_range(0..=w - crop_w),
+                        )
+                    } else {
+                        ((h - crop_h) / 2, (w - crop_w) / 2)
+                    };
+                    let base = f * h * w * c;
+                    for ch in 0..c {
+                        for y in top..top + crop_h {
+                            for x in left..left + crop_w {
+                                imgs.push(f32::from(px[base + (y * w + x) * c + ch]) / 255.0);
+                            }
+                        }
+                    }
+                }
+            }
+            for k in 0..tp as isize {
+                let f = frame(k);
+                act.extend_from_slice(&data.action[f * a_dim..(f + 1) * a_dim]);
+            }
+        }
+        // Normalise with the policy's own normalisers (the ones it will use at inference).
+        let mut x0 = act;
+        policy.action_normalizer().normalize(&mut x0);
+        let obs = policy.normalized_obs_batch(st, (!env.is_empty()).then_some(env), b)?;
+        let obs = ObsBatch {
+            image: match image {
+                Some([c, _, _]) => Some(Tensor::from_vec(
+                    imgs,
+                    (b * t_o, c, crop_h, crop_w),
+                    device,
+                )?),
+                None => None,
+            },
+            ..obs
+        };
+        let eps: Vec<f32> = (0..b * tp * a_dim)
+            .map(|_| StandardNormal.sample(&mut rng))
+            .collect();
+        let ts: Vec<usize> = (0..b)
+            .map(|_| rng.random_range(0..config.num_train_timesteps))
+            .collect();
+        let x0 = Tensor::from_vec(x0, (b, tp, a_dim), device)?;
+        let eps = Tensor::from_vec(eps, (b, tp, a_dim), device)?;
+        let cond = policy.global_cond_cropped(&obs)?;
+        let loss = policy.loss(&cond, &x0, &eps, &ts, None)?;
+        let mut grads = loss.backward()?;
+        // Global gradient-norm clipping.
+        let mut sq = 0f64;
+        for (_, v) in &vars {
+            if let Some(g) = grads.get(v.as_tensor()) {
+                sq += f64::from(g.sqr()?.sum_all()?.to_scalar::<f32>()?);
+            }
+        }
+        let norm = sq.sqrt();
+        if norm > train.grad_clip {
+            let scale = train.grad_clip / (norm + 1e-6);
+            for (_, v) in &vars {
+                if let Some(g) = grads.get(v.as_tensor()) {
+                    let g = (g * scale)?;
+                    grads.insert(v.as_tensor(), g);
+                }
+            }
+        }
+        let lr = learning_rate(
+            config.optimizer_lr,
+            config.scheduler_warmup_steps,
+            train.steps,
+            step,
+        );
+        opt.set_learning_rate(lr);
+        opt.step(&grads)?;
+        if let (Some(max), Some(e)) = (train.ema_max_decay, ema.as_mut()) {
+            let decay = max.min((1.0 + step as f64) / (10.0 + step as f64));
+            for (k, v) in &vars {
+                if let Some(prev) = e.get_mut(k) {
+                    *prev = ((&*prev * decay)? + (v.as_tensor() * (1.0 - decay))?)?;
+                }
+            }
+        }
+        let l = loss.to_scalar::<f32>()?;
+        if !l.is_finite() {
+            return Err(config_err(
+                "loss",
+                l,
+                "finite (training diverged; lower optimizer_lr)",
+            ));
+        }
+        recent.push_back(l);
+        if recent.len() > 100 {
+            recent.pop_front();
+        }
+        step += 1;
+        progress(step, l, lr);
+        if (train.checkpoint_every > 0 && step.is_multiple_of(train.checkpoint_every)) || step == train.steps
+        {
+            let weights: HashMap<String, Tensor> = match &ema {
+                Some(e) => e.clone(),
+                None => vars
+                    .iter()
+                    .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+                    .collect(),
+            };
+            let raw: HashMap<String, Tensor> = vars
+                .iter()
+                .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+                .collect();
+            let dirs: Vec<PathBuf> = if step == train.steps {
+                vec![out.to_path_buf()]
+            } else {
+                vec![
+                    out.to_path_buf(),
+                    out.join("checkpoints").join(format!("{step:06}")),
+                ]
+            };
+            for d in dirs {
+                checkpoint::save(&d, config, &weights, &data.stats)?;
+                candle_core::safetensors::save(&raw, d.join("raw_model.safetensors"))?;
+                let st = serde_json::json!({
+                    "step": step,
+                    "train": train,
+                    "ema": train.ema_max_decay.is_some(),
+                    "note": "model.safetensors holds the EMA weights (the policy); raw_model.safetensors the optimised ones. AdamW moments are not saved: a resumed run re-estimates them.",
+                });
+                let p = d.join("training_state.json");
+                std::fs::write(&p, serde_json::to_string_pretty(&st).unwrap_or_default()).map_err(
+                    |source| PolicyError::Io {
+                        path: p.clone(),
+                        source,
+                    },
+                )?;
+            }
+        }
+    }
+    let final_loss = if recent.is_empty() {
+        f32::NAN
+    } else {
+        recent.iter().sum::<f32>() / recent.len() as f32
+    };
+    Ok(TrainReport {
+        steps_run: step - steps_at_start,
+        step,
+        final_loss,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+/// Statistics as the policy wants them, from per-feature (min, max, mean, std) vectors.
+pub fn stats_from(
+    features: impl IntoIterator<Item = (String, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>)>,
+) -> StatsMap {
+    let f = |v: Vec<f64>| v.into_iter().map(|x| x as f32).collect();
+    features
+        .into_iter()
+        .map(|(name, min, max, mean, std)| {
+            (
+                name,
+                Stats {
+                    min: f(min),
+                    max: f(max),
+                    mean: f(mean),
+                    std: f(std),
+                },
+            )
+        })
+        .collect()
+}

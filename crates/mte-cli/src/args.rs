@@ -56,6 +56,45 @@ pub enum Command {
     /// Train policies.
     #[command(subcommand)]
     Train(TrainCommand),
+    /// Evaluate policies on PushT.
+    #[command(subcommand)]
+    Eval(EvalCommand),
+}
+
+/// `mte eval ...`
+#[derive(Debug, Subcommand)]
+pub enum EvalCommand {
+    /// Roll out a trained policy checkpoint on seeded PushT episodes (clean observations).
+    Policy(EvalPolicyArgs),
+}
+
+/// `mte eval policy`
+#[derive(Debug, Args)]
+pub struct EvalPolicyArgs {
+    /// Checkpoint directory (config.json + model.safetensors).
+    #[arg(long, value_name = "DIR")]
+    pub checkpoint: PathBuf,
+    /// First reset seed (Diffusion Policy's test seeds start at 100000).
+    #[arg(long, default_value_t = 100_000)]
+    pub seed: u64,
+    /// Episodes (seeds seed..seed+episodes).
+    #[arg(long, default_value_t = 50)]
+    pub episodes: usize,
+    /// Reset stream.
+    #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
+    pub stream: StreamArg,
+    /// Control steps between queries.
+    #[arg(long, default_value_t = 8)]
+    pub stride: usize,
+    /// `open-loop`, or an aggregator text form (e.g. `ewm:0.01`, `median`).
+    #[arg(long, default_value = "ewm:0.01")]
+    pub execution: String,
+    /// Step limit per episode.
+    #[arg(long, default_value_t = 300)]
+    pub max_steps: usize,
+    /// Seed of the policy's sampling noise.
+    #[arg(long, default_value_t = 0)]
+    pub noise_seed: u64,
 }
 
 /// `mte train ...`

@@ -11,7 +11,7 @@ use std::process::ExitCode;
 
 use clap::Parser;
 
-use crate::args::{Cli, Command, DataCommand, EnsembleCommand, SimCommand, TrainCommand};
+use crate::args::{Cli, Command, DataCommand, EnsembleCommand, EvalCommand, SimCommand, TrainCommand};
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
@@ -23,6 +23,7 @@ fn main() -> ExitCode {
         Command::Sim(SimCommand::Bench(a)) => cmd::sim::bench(&cli, a),
         Command::Data(DataCommand::Generate(a)) => cmd::data::generate(&cli, a),
         Command::Train(TrainCommand::Diffusion(a)) => cmd::train::diffusion(&cli, a),
+        Command::Eval(EvalCommand::Policy(a)) => cmd::eval::policy(&cli, a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -6,3 +6,4 @@ pub mod media;
 pub mod replay;
 pub mod sim;
 pub mod train;
+pub mod eval;

@@ -1,0 +1,65 @@
+//! `mte eval policy`.
+
+use std::io::Write as _;
+
+use anyhow::{Context, Result, ensure};
+use candle_core::Device;
+use mte_eval::Reporter as _;
+use mte_eval::pusht::{Execution, ObsNeeds, run_episode};
+use mte_policy::ChunkPolicy as _;
+use mte_policy::checkpoint;
+use mte_policy::config::FeatureType;
+use rand::SeedableRng;
+
+use crate::args::{Cli, EvalPolicyArgs, Format};
+use crate::progress::Bar;
+
+/// `mte eval policy`
+pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
+    ensure!(a.episodes >= 1, "--episodes must be at least 1");
+    let execution = if a.execution == "open-loop" {
+        Execution::OpenLoop
+    } else {
+        Execution::Ensemble(a.execution.parse().with_context(|| {
+            format!("--execution {:?}: expected open-loop or an aggregator", a.execution)
+        })?)
+    };
+    let p = checkpoint::load(&a.checkpoint, &Device::Cpu)
+        .with_context(|| format!("loading {}", a.checkpoint.display()))?;
+    let c = p.config();
+    let needs = ObsNeeds {
+        env_state: c.vector_dim(FeatureType::Env).is_some(),
+        image: c.image_shape().map(|[_, h, w]| (w, h)),
+    };
+    let bar = Bar::new(!cli.no_progress && !cli.quiet);
+    bar.start("episodes", a.episodes as u64);
+    let t0 = std::time::Instant::now();
+    let mut out = Vec::new();
+    for i in 0..a.episodes {
+        let seed = a.seed + i as u64;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.noise_seed ^ seed.rotate_left(17));
+        out.push(run_episode(&p, needs, seed, a.stream.into(), a.stride, a.max_steps, execution, &mut rng)?);
+        bar.advance(1);
+    }
+    bar.finish();
+    let n = out.len() as f64;
+    let succ = out.iter().filter(|o| o.success).count();
+    let mean_max = out.iter().map(|o| o.max_coverage).sum::<f64>() / n;
+    let secs = t0.elapsed().as_secs_f64();
+    let mut so = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(
+            so,
+            "{}",
+            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon()})
+        )?,
+        Format::Text => writeln!(
+            so,
+            "{succ}/{} successful, mean max coverage {mean_max:.3} ({} , h = {}), {secs:.0} s",
+            out.len(),
+            a.execution,
+            a.stride
+        )?,
+    }
+    Ok(())
+}

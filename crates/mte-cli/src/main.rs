@@ -11,7 +11,9 @@ use std::process::ExitCode;
 
 use clap::Parser;
 
-use crate::args::{Cli, Command, DataCommand, EnsembleCommand, EvalCommand, SimCommand, TrainCommand};
+use crate::args::{
+    Cli, Command, DataCommand, EnsembleCommand, EvalCommand, SimCommand, TrainCommand,
+};
 
 fn main() -> ExitCode {
     let cli = Cli::parse();

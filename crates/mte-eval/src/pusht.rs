@@ -68,7 +68,11 @@ pub enum RolloutError {
     },
 }
 
-fn observe(env: &PushT, needs: ObsNeeds, renderer: &mut Option<Renderer>) -> Result<Observation, RolloutError> {
+fn observe(
+    env: &PushT,
+    needs: ObsNeeds,
+    renderer: &mut Option<Renderer>,
+) -> Result<Observation, RolloutError> {
     let a = env.agent_pos();
     let image = match (needs.image, renderer.as_mut()) {
         (Some((w, h)), Some(r)) => {
@@ -80,7 +84,9 @@ fn observe(env: &PushT, needs: ObsNeeds, renderer: &mut Option<Renderer>) -> Res
     };
     Ok(Observation {
         state: vec![a[0] as f32, a[1] as f32],
-        env_state: needs.env_state.then(|| env.keypoints().iter().map(|&v| v as f32).collect()),
+        env_state: needs
+            .env_state
+            .then(|| env.keypoints().iter().map(|&v| v as f32).collect()),
         image,
     })
 }
@@ -149,7 +155,12 @@ pub fn run_episode(
             steps += 1;
             max_coverage = max_coverage.max(info.coverage);
             if info.is_success {
-                return Ok(EpisodeOutcome { seed, success: true, max_coverage, steps });
+                return Ok(EpisodeOutcome {
+                    seed,
+                    success: true,
+                    max_coverage,
+                    steps,
+                });
             }
             if k + 1 < h {
                 // Keep the observation history at control rate: DP's env wrapper records
@@ -161,5 +172,10 @@ pub fn run_episode(
         }
     }
     let _ = chunk;
-    Ok(EpisodeOutcome { seed, success: false, max_coverage, steps })
+    Ok(EpisodeOutcome {
+        seed,
+        success: false,
+        max_coverage,
+        steps,
+    })
 }

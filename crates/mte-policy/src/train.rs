@@ -12,7 +12,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor, Var};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -161,7 +161,7 @@ pub fn train(
     train.validate()?;
     let t0 = std::time::Instant::now();
     let varmap = VarMap::new();
-    let vb = VarBuilder::from_varmap(&varmap, DType::F32, device);
+    let vb = crate::init::seeded_var_builder(&varmap, train.seed, DType::F32, device);
     let policy = DiffusionPolicy::new(config.clone(), data.stats.clone(), vb)?;
     let mut step = 0usize;
     let state_path = out.join("training_state.json");
@@ -210,7 +210,7 @@ pub fn train(
     if train.ema_max_decay.is_some() && ema.is_none() {
         ema = Some(
             vars.iter()
-                .map(|(k, v)| Ok((k.clone(), v.as_tensor().copy()?)))
+                .map(|(k, v)| Ok((k.clone(), v.as_tensor().detach().copy()?)))
                 .collect::<Result<HashMap<_, _>, PolicyError>>()?,
         );
     }
@@ -321,7 +321,7 @@ pub fn train(
             let scale = train.grad_clip / (norm + 1e-6);
             for (_, v) in &vars {
                 if let Some(g) = grads.get(v.as_tensor()) {
-                    let g = (g * scale)?;
+                    let g = (g * scale)?.detach();
                     grads.insert(v.as_tensor(), g);
                 }
             }
@@ -338,7 +338,10 @@ pub fn train(
             let decay = max.min((1.0 + step as f64) / (10.0 + step as f64));
             for (k, v) in &vars {
                 if let Some(prev) = e.get_mut(k) {
-                    *prev = ((&*prev * decay)? + (v.as_tensor() * (1.0 - decay))?)?;
+                    // detach: otherwise every EMA tensor keeps the previous one alive through
+                    // the autograd graph, and memory grows by a model copy per step.
+                    *prev =
+                        ((&*prev * decay)? + (v.as_tensor().detach() * (1.0 - decay))?)?.detach();
                 }
             }
         }
@@ -356,7 +359,8 @@ pub fn train(
         }
         step += 1;
         progress(step, l, lr);
-        if (train.checkpoint_every > 0 && step.is_multiple_of(train.checkpoint_every)) || step == train.steps
+        if (train.checkpoint_every > 0 && step.is_multiple_of(train.checkpoint_every))
+            || step == train.steps
         {
             let weights: HashMap<String, Tensor> = match &ema {
                 Some(e) => e.clone(),

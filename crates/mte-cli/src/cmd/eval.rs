@@ -21,7 +21,10 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
         Execution::OpenLoop
     } else {
         Execution::Ensemble(a.execution.parse().with_context(|| {
-            format!("--execution {:?}: expected open-loop or an aggregator", a.execution)
+            format!(
+                "--execution {:?}: expected open-loop or an aggregator",
+                a.execution
+            )
         })?)
     };
     let p = checkpoint::load(&a.checkpoint, &Device::Cpu)
@@ -38,7 +41,16 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
     for i in 0..a.episodes {
         let seed = a.seed + i as u64;
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.noise_seed ^ seed.rotate_left(17));
-        out.push(run_episode(&p, needs, seed, a.stream.into(), a.stride, a.max_steps, execution, &mut rng)?);
+        out.push(run_episode(
+            &p,
+            needs,
+            seed,
+            a.stream.into(),
+            a.stride,
+            a.max_steps,
+            execution,
+            &mut rng,
+        )?);
         bar.advance(1);
     }
     bar.finish();

@@ -2,8 +2,8 @@
 
 pub mod data;
 pub mod demo;
+pub mod eval;
 pub mod media;
 pub mod replay;
 pub mod sim;
 pub mod train;
-pub mod eval;

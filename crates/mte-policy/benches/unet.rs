@@ -1,0 +1,68 @@
+//! U-Net forward (one denoising step, batch 1) and one chunk (the full denoising loop) for the
+//! `paper` and `cpu` presets, side by side with `shared/reference/peer-bench/bench_diffusion.py`
+//! (LeRobot, same configuration, random init). Threads: `RAYON_NUM_THREADS=1` for the
+//! peer's 1-thread figures.
+//!
+//! `RAYON_NUM_THREADS=1 cargo bench -p mte-policy --bench unet`
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{VarBuilder, VarMap};
+use mte_policy::config::{DiffusionConfig, ObsKind};
+use mte_policy::{DiffusionPolicy, Observation, Stats, StatsMap};
+use rand::SeedableRng;
+
+fn main() {
+    divan::main();
+}
+
+fn stats() -> StatsMap {
+    let mm = |n: usize| Stats {
+        min: vec![0.0; n],
+        max: vec![512.0; n],
+        mean: vec![0.5; n],
+        std: vec![0.25; n],
+    };
+    let mut s = StatsMap::new();
+    s.insert("observation.state".into(), mm(2));
+    s.insert("observation.environment_state".into(), mm(16));
+    s.insert("observation.image".into(), mm(3));
+    s.insert("action".into(), mm(2));
+    s
+}
+
+fn policy(preset: &str) -> (DiffusionPolicy, VarMap) {
+    let c = match preset {
+        "paper" => DiffusionConfig::paper(),
+        "cpu-image" => DiffusionConfig::cpu(ObsKind::Image),
+        _ => DiffusionConfig::cpu(ObsKind::Keypoints),
+    };
+    let vm = VarMap::new();
+    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+    (DiffusionPolicy::new(c, stats(), vb).expect("policy"), vm)
+}
+
+#[divan::bench(args = ["paper", "cpu-image", "cpu-keypoints"], sample_count = 10)]
+fn unet_forward(bencher: divan::Bencher, preset: &str) {
+    let (p, _vm) = policy(preset);
+    let g = if preset == "cpu-keypoints" {
+        2 * 18
+    } else {
+        2 * 66
+    };
+    let x = Tensor::randn(0f32, 1.0, (1, 16, 2), &Device::Cpu).expect("x");
+    let cond = Tensor::randn(0f32, 1.0, (1, g), &Device::Cpu).expect("cond");
+    bencher.bench_local(|| p.unet().forward(&x, &[50], &cond).expect("forward"));
+}
+
+#[divan::bench(args = ["paper", "cpu-image", "cpu-keypoints"], sample_count = 3)]
+fn chunk(bencher: divan::Bencher, preset: &str) {
+    let (p, _vm) = policy(preset);
+    let obs = Observation {
+        state: vec![200.0, 300.0],
+        env_state: (preset == "cpu-keypoints").then(|| vec![250.0; 16]),
+        image: (preset != "cpu-keypoints").then(|| vec![128u8; 96 * 96 * 3]),
+    };
+    let hist = vec![obs.clone(), obs];
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    bencher.bench_local(|| p.predict(&hist, &mut rng).expect("chunk"));
+}

@@ -111,7 +111,6 @@ struct Column {
     name: &'static str,
     writer: NpyWriter,
     stats: Option<StatsAccumulator>,
-    image: bool,
 }
 
 /// Writes a dataset episode by episode; every [`DatasetWriter::push_episode`] appends to the
@@ -238,8 +237,7 @@ impl DatasetWriter {
     ) -> Result<(), DataError> {
         let file = format!("{name}.npy");
         let writer = NpyWriter::create(&self.dir.join("data").join(&file), dtype, shape)?;
-        let image = name == names::IMAGE;
-        let dim = if image {
+        let dim = if name == names::IMAGE {
             3
         } else {
             shape.iter().product::<usize>().max(1)
@@ -248,7 +246,6 @@ impl DatasetWriter {
             name,
             writer,
             stats: stats.then(|| StatsAccumulator::new(dim)),
-            image,
         });
         self.features.insert(
             name.to_string(),
@@ -308,7 +305,6 @@ impl DatasetWriter {
                     SUCCESS => col.writer.append_bool(&[f.success])?,
                     _ => {}
                 }
-                let _ = col.image;
             }
         }
         let meta = EpisodeMeta {

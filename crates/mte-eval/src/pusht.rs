@@ -122,10 +122,9 @@ pub fn run_episode(
     let mut history: Vec<Observation> = Vec::with_capacity(t_o);
     let mut chunk = Vec::new();
     let mut max_coverage = env.coverage();
-    let mut steps = 0;
-    while steps < max_steps {
-        let t = steps;
-        // Query: update the history (first observation repeated at the start).
+    for steps in 0..max_steps {
+        // The history holds the last T_o control-rate observations, the first one repeated at
+        // the start (Diffusion Policy's env wrapper records every step's observation).
         let o = observe(&env, needs, &mut renderer)?;
         if history.is_empty() {
             history = vec![o; t_o];
@@ -133,45 +132,35 @@ pub fn run_episode(
             history.remove(0);
             history.push(o);
         }
-        chunk = policy.predict_chunk(&history, rng)?;
-        if let Some(e) = ens.as_mut() {
-            e.insert(t as u64, &chunk, QueryMeta { corrupted: false })?;
+        let k = steps % h;
+        if k == 0 {
+            chunk = policy.predict_chunk(&history, rng)?;
+            if let Some(e) = ens.as_mut() {
+                e.insert(steps as u64, &chunk, QueryMeta { corrupted: false })?;
+            }
         }
-        for k in 0..h {
-            if steps >= max_steps {
-                break;
+        let action: [f64; 2] = match ens.as_mut() {
+            Some(e) => {
+                let s = e.action(steps as u64)?;
+                [f64::from(s.action[0]), f64::from(s.action[1])]
             }
-            let action: [f64; 2] = match ens.as_mut() {
-                Some(e) => {
-                    let s = e.action(steps as u64)?;
-                    [f64::from(s.action[0]), f64::from(s.action[1])]
-                }
-                None => {
-                    let r = t_o - 1 + k;
-                    [f64::from(chunk[r * d]), f64::from(chunk[r * d + 1])]
-                }
-            };
-            let info = env.step(action)?;
-            steps += 1;
-            max_coverage = max_coverage.max(info.coverage);
-            if info.is_success {
-                return Ok(EpisodeOutcome {
-                    seed,
-                    success: true,
-                    max_coverage,
-                    steps,
-                });
+            None => {
+                let r = t_o - 1 + k;
+                [f64::from(chunk[r * d]), f64::from(chunk[r * d + 1])]
             }
-            if k + 1 < h {
-                // Keep the observation history at control rate: DP's env wrapper records
-                // every step's observation; the next query uses the last T_o of them.
-                let o = observe(&env, needs, &mut renderer)?;
-                history.remove(0);
-                history.push(o);
-            }
+        };
+        let info = env.step(action)?;
+        max_coverage = max_coverage.max(info.coverage);
+        if info.is_success {
+            return Ok(EpisodeOutcome {
+                seed,
+                success: true,
+                max_coverage,
+                steps: steps + 1,
+            });
         }
     }
-    let _ = chunk;
+    let steps = max_steps;
     Ok(EpisodeOutcome {
         seed,
         success: false,

@@ -199,15 +199,11 @@ impl DiffusionPolicy {
                         reason: format!("{:?}: expected {s_dim} finite values", o.state),
                     });
                 }
-                let mut s = o.state.clone();
-                self.state_norm.normalize(&mut s);
-                state.extend(s);
+                state.extend_from_slice(&o.state);
                 if let Some(n) = &self.env_norm {
                     match &o.env_state {
                         Some(e) if e.len() == n.dim() && e.iter().all(|v| v.is_finite()) => {
-                            let mut e = e.clone();
-                            n.normalize(&mut e);
-                            env.extend(e);
+                            env.extend_from_slice(e);
                         }
                         other => {
                             return Err(PolicyError::Input {
@@ -245,17 +241,15 @@ impl DiffusionPolicy {
                 }
             }
         }
-        let dev = &self.device;
+        let batch = self.normalized_obs_batch(state, self.env_norm.is_some().then_some(env), b)?;
         Ok(ObsBatch {
-            state: Tensor::from_vec(state, (b, t_o, s_dim), dev)?,
-            env: match &self.env_norm {
-                Some(n) => Some(Tensor::from_vec(env, (b, t_o, n.dim()), dev)?),
-                None => None,
-            },
             image: match img_shape {
-                Some([c, hh, ww]) => Some(Tensor::from_vec(image, (b * t_o, c, hh, ww), dev)?),
+                Some([c, hh, ww]) => {
+                    Some(Tensor::from_vec(image, (b * t_o, c, hh, ww), &self.device)?)
+                }
                 None => None,
             },
+            ..batch
         })
     }
 

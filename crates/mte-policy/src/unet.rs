@@ -336,11 +336,11 @@ impl ConditionalUnet1d {
         let half = self.embed_dim / 2;
         let scale = (10000f64).ln() / (half as f64 - 1.0);
         let mut data = Vec::with_capacity(timesteps.len() * self.embed_dim);
+        // torch computes the frequencies in float32; so do we.
+        let freqs: Vec<f32> = (0..half)
+            .map(|k| (k as f32 * -(scale as f32)).exp())
+            .collect();
         for &t in timesteps {
-            // torch computes the frequencies in float32; so do we.
-            let freqs: Vec<f32> = (0..half)
-                .map(|k| (k as f32 * -(scale as f32)).exp())
-                .collect();
             data.extend(freqs.iter().map(|f| (t as f32 * f).sin()));
             data.extend(freqs.iter().map(|f| (t as f32 * f).cos()));
         }

@@ -151,6 +151,8 @@ impl RgbEncoder {
     /// of the four layers, for a cropped batch.
     pub fn backbone_stages(&self, x: &Tensor) -> Result<Vec<Tensor>> {
         let h = self.bn1.forward(&self.conv1.forward(x)?)?.relu()?;
+        // Max pool 3x3, stride 2, padding 1: after ReLU every value is >= 0, so zero padding
+        // is equivalent to torch's -inf padding.
         let mut h = h
             .pad_with_zeros(2, 1, 1)?
             .pad_with_zeros(3, 1, 1)?
@@ -169,18 +171,10 @@ impl RgbEncoder {
     /// feature map `(B, 512, h, w)`, the spatial-softmax keypoints `(B, K, 2)` and the
     /// output feature `(B, 2K)` (for monitors, probes and attacks).
     pub fn forward_parts(&self, x: &Tensor) -> Result<EncoderParts> {
-        let h = self.bn1.forward(&self.conv1.forward(x)?)?.relu()?;
-        // Max pool 3x3, stride 2, padding 1: after ReLU every value is >= 0, so zero padding
-        // is equivalent to torch's -inf padding.
-        let mut h = h
-            .pad_with_zeros(2, 1, 1)?
-            .pad_with_zeros(3, 1, 1)?
-            .max_pool2d_with_stride(3, 2)?;
-        for layer in &self.layers {
-            for block in layer {
-                h = block.forward(&h)?;
-            }
-        }
+        let h = self
+            .backbone_stages(x)?
+            .pop()
+            .ok_or_else(|| candle_core::Error::Msg("backbone produced no stage".into()))?;
         let f = self.keypoints.forward(&h)?;
         let (b, k, fh, fw) = f.dims4()?;
         let att = candle_nn::ops::softmax_last_dim(&f.reshape((b * k, fh * fw))?)?;

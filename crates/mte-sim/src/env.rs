@@ -614,13 +614,11 @@ impl PushT {
 
     /// The physics part of one substep, after the agent has been moved to `agent_pos`.
     fn substep(&mut self) -> u32 {
-        let physics_block = self.world.block_pose();
-        if self.config.skip_free_flight && self.contact_impossible(&physics_block) {
-            self.block = physics_block;
+        self.block = self.world.block_pose();
+        if self.config.skip_free_flight && self.contact_impossible(&self.block) {
             self.contacts.clear();
             return 0;
         }
-        self.block = physics_block;
         self.world
             .step(self.agent_pos, self.agent_vel, &mut self.contacts)
     }

@@ -304,7 +304,7 @@ impl Expert {
         };
         // Straight in when the agent is already on the pre-contact side and close.
         let (a0, a1) = (ang(agent), ang(pre));
-        let mut da = wrap_angle(a1 - a0);
+        let da = wrap_angle(a1 - a0);
         let direct = (agent[0] - pre[0]).hypot(agent[1] - pre[1]) < 1.0
             || (da.abs() < 0.35 && dist(agent) >= dist(pre));
         if !direct {
@@ -317,9 +317,7 @@ impl Expert {
                 let a = a0 + da * k as f64 / arc_steps as f64;
                 go(out, on_circle(a));
             }
-            da = 0.0;
         }
-        let _ = da;
         go(out, pre);
     }
 

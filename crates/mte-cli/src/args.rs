@@ -8,6 +8,7 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use mte_ensemble::Aggregator;
+use mte_sim::expert::ExpertConfig;
 
 /// mte: robust temporal ensembling for action-chunked robot policies.
 #[derive(Debug, Parser)]
@@ -109,7 +110,7 @@ pub enum TrainCommand {
 pub enum PresetArg {
     /// The published PushT configuration (down_dims 512/1024/2048, 100 DDPM steps): for GPUs.
     Paper,
-    /// Small U-Net (64/128/256), 16 DDIM steps: trains on 2 CPU cores.
+    /// Small U-Net (32/64/128), 16 DDIM steps: trains on 2 CPU cores.
     Cpu,
 }
 
@@ -280,6 +281,14 @@ pub struct DataGenerateArgs {
     /// Uniform noise added to the expert's targets (px), for more varied demonstrations.
     #[arg(long, default_value_t = 0.0)]
     pub action_noise: f64,
+    /// Largest target displacement per control step while the expert travels around the
+    /// block (px). Smaller values give slower, smoother demonstrations that are easier to
+    /// imitate.
+    #[arg(long, default_value_t = ExpertConfig::default().travel_step)]
+    pub travel_step: f64,
+    /// Target displacement per control step while the expert pushes (px).
+    #[arg(long, default_value_t = ExpertConfig::default().push_step)]
+    pub push_step: f64,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,

@@ -14,8 +14,12 @@
 //! pixels of the 512 x 512 workspace), randomness always from an explicit seed.
 #![deny(missing_docs)]
 
+pub mod corruption;
 pub mod pusht;
+pub mod record;
 pub mod replay;
+pub mod store;
+pub mod sweep;
 pub mod synthetic;
 
 /// Progress callbacks for long-running work. All methods default to doing nothing.

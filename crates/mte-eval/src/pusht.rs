@@ -1,14 +1,46 @@
-//! Chunked execution of a policy on PushT: the policy is queried every `h` control steps with
-//! the last `T_o` observations (the first repeated at episode start, as Diffusion Policy
-//! does), and its chunk is either executed open loop (`h` actions of the latest chunk, from
-//! row `T_o - 1`: Diffusion Policy's and LeRobot's default) or fed to a `TemporalEnsembler`.
-//! The evaluation runner with corruption, sweeps and reports builds on this (issue 6).
+//! Chunked execution of a policy on PushT, clean or corrupted.
+//!
+//! The policy is queried every `h` control steps (query `i` at `t_i = i h`) with the last
+//! `T_o` control-rate observations (the first repeated at episode start, as Diffusion
+//! Policy's env wrapper does). Its chunk is either executed open loop (`h` actions of the
+//! latest chunk from row `T_o - 1`: Diffusion Policy's and LeRobot's default) or fed to a
+//! [`TemporalEnsembler`] with any aggregator (`latest` is the non-ensembling baseline).
+//!
+//! ## Pairing
+//!
+//! Every arm of a cell sees the same reset seed, and query `i` of episode `seed` draws its
+//! sampling noise from a stream seeded by `(noise_seed, seed, i)` and its corruption
+//! randomness from another stream seeded the same way, so arms differ only in how chunks
+//! become actions. The corruption schedule is a function of the query index, identical for
+//! every arm.
+//!
+//! ## Corruption
+//!
+//! Observation faults go through [`ObservationCorruptor`]. Common-mode bias `b(tau)` is
+//! added to every candidate of `tau` when the newest query covering `tau` is corrupted; all
+//! aggregators offered are translation-equivariant, so the runner adds `b(tau)` to the
+//! output, which equals shifting every candidate (and keeps the ensembler's candidates
+//! clean for the diagnostics). Oracle bracket attacks rewrite corrupted candidates per
+//! control time from the clean bracket, so they assemble candidates here and call the
+//! aggregator directly. `q(tau)` and `M(tau)` are measured and recorded at every step.
 
-use mte_ensemble::{Aggregator, ChunkGeometry, EnsembleError, QueryMeta, TemporalEnsembler};
+use std::fmt;
+use std::str::FromStr;
+use std::time::Instant;
+
+use mte_ensemble::bracket::diagnose;
+use mte_ensemble::{
+    Aggregate, Aggregator, BracketAccumulator, Candidates, ChunkGeometry, EnsembleError,
+    EnsemblerOptions, QueryMeta, Regime, StepReport, TemporalEnsembler, Workspace,
+};
 use mte_policy::{ChunkPolicy, Observation, PolicyError};
 use mte_sim::render::Renderer;
 use mte_sim::{PushT, ResetStream, SimError};
-use rand::RngCore;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::corruption::{CorruptionSpec, Fault, ObservationCorruptor, OracleMode};
+use crate::record::{EpisodeRecord, StageTimes};
 
 /// How chunks become actions.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -19,6 +51,27 @@ pub enum Execution {
     Ensemble(Aggregator),
 }
 
+impl fmt::Display for Execution {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::OpenLoop => f.write_str("open-loop"),
+            Self::Ensemble(a) => write!(f, "{a}"),
+        }
+    }
+}
+
+impl FromStr for Execution {
+    type Err = mte_ensemble::ParseAggregatorError;
+    /// `open-loop`, or an aggregator's text form (`ewm:0.01`, `median`, `latest`, ...).
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        if s.trim() == "open-loop" {
+            Ok(Self::OpenLoop)
+        } else {
+            s.parse().map(Self::Ensemble)
+        }
+    }
+}
+
 /// Which observations the policy reads.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ObsNeeds {
@@ -26,19 +79,6 @@ pub struct ObsNeeds {
     pub env_state: bool,
     /// Rendered frames of this (width, height).
     pub image: Option<(usize, usize)>,
-}
-
-/// One episode's outcome.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct EpisodeOutcome {
-    /// Reset seed.
-    pub seed: u64,
-    /// Coverage > 0.95 reached.
-    pub success: bool,
-    /// Maximum coverage over the episode (Diffusion Policy's score).
-    pub max_coverage: f64,
-    /// Control steps run.
-    pub steps: usize,
 }
 
 /// Errors of a rollout.
@@ -53,9 +93,15 @@ pub enum RolloutError {
     /// The ensembler refused a chunk or a time.
     #[error(transparent)]
     Ensemble(#[from] EnsembleError),
+    /// An aggregator refused a candidate set.
+    #[error(transparent)]
+    Aggregate(#[from] mte_ensemble::AggregateError),
     /// Rendering failed.
     #[error(transparent)]
     Render(#[from] mte_sim::render::RenderError),
+    /// A corruption parameter was out of range.
+    #[error(transparent)]
+    Corruption(#[from] crate::corruption::CorruptionError),
     /// A bad setting.
     #[error("`{field}` = {value}: expected {expected}")]
     Config {
@@ -66,6 +112,43 @@ pub enum RolloutError {
         /// Expectation.
         expected: String,
     },
+}
+
+/// Everything that defines one episode of one arm.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EpisodeSpec<'a> {
+    /// Observations the policy reads.
+    pub needs: ObsNeeds,
+    /// Reset seed.
+    pub seed: u64,
+    /// Reset stream.
+    pub stream: ResetStream,
+    /// Query stride `h`.
+    pub h: usize,
+    /// Step limit.
+    pub max_steps: usize,
+    /// Arm.
+    pub execution: Execution,
+    /// Corruption of the cell.
+    pub corruption: &'a CorruptionSpec,
+    /// Seed of the per-query sampling and corruption streams (shared by the arms).
+    pub noise_seed: u64,
+}
+
+/// SplitMix64 finaliser: decorrelates structured seeds.
+fn mix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The RNG of query `i` of episode `seed`: `purpose` 0 = sampling noise, 1 = corruption,
+/// 2 = per-episode attack state.
+pub fn query_rng(noise_seed: u64, seed: u64, i: u64, purpose: u64) -> ChaCha8Rng {
+    let mut r = ChaCha8Rng::seed_from_u64(mix(mix(noise_seed) ^ mix(seed).rotate_left(21) ^ i));
+    r.set_stream(purpose);
+    r
 }
 
 fn observe(
@@ -91,19 +174,105 @@ fn observe(
     })
 }
 
-/// Run one episode from `seed`.
-#[allow(clippy::too_many_arguments)]
+/// Candidate assembly for oracle attacks: the live chunks and their flags.
+struct OracleState {
+    mode: OracleMode,
+    /// Per coordinate: +1 pushes towards the bracket's top, -1 towards its bottom (drift).
+    direction: Vec<f32>,
+    live: Vec<(u64, Vec<f32>, bool)>,
+    ws: Workspace,
+    values: Vec<f32>,
+    flags: Vec<bool>,
+    scratch: Vec<f32>,
+}
+
+impl OracleState {
+    /// Candidates for `tau` with corrupted ones rewritten; returns (m, q).
+    fn candidates(&mut self, g: ChunkGeometry, d: usize, tau: u64) -> (usize, usize) {
+        let span = g.span() as u64;
+        self.live.retain(|(t, _, _)| t + span > tau);
+        self.values.clear();
+        self.flags.clear();
+        for (t, chunk, corrupted) in &self.live {
+            if let Some(r) = g.candidate_row(*t, tau) {
+                self.values.extend_from_slice(&chunk[r * d..(r + 1) * d]);
+                self.flags.push(*corrupted);
+            }
+        }
+        let m = self.flags.len();
+        let q = self.flags.iter().filter(|&&c| c).count();
+        if q == 0 || q == m {
+            return (m, q);
+        }
+        for j in 0..d {
+            let clean: Vec<f32> = (0..m)
+                .filter(|&i| !self.flags[i])
+                .map(|i| self.values[i * d + j])
+                .collect();
+            let lo = clean.iter().copied().fold(f32::INFINITY, f32::min);
+            let hi = clean.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            let target = match self.mode {
+                OracleMode::Drift => {
+                    if self.direction[j] >= 0.0 {
+                        hi
+                    } else {
+                        lo
+                    }
+                }
+                OracleMode::Instant => {
+                    // The end that moves the coordinate-wise median farthest from the
+                    // clean candidates' median.
+                    let base = median(&clean, &mut self.scratch);
+                    let with = |v: f32, s: &mut Vec<f32>| {
+                        let mut all = clean.clone();
+                        all.extend(std::iter::repeat_n(v, q));
+                        median(&all, s)
+                    };
+                    let (up, down) = (with(hi, &mut self.scratch), with(lo, &mut self.scratch));
+                    if (up - base).abs() >= (down - base).abs() {
+                        hi
+                    } else {
+                        lo
+                    }
+                }
+            };
+            for i in 0..m {
+                if self.flags[i] {
+                    self.values[i * d + j] = target;
+                }
+            }
+        }
+        (m, q)
+    }
+}
+
+fn median(v: &[f32], s: &mut Vec<f32>) -> f32 {
+    s.clear();
+    s.extend_from_slice(v);
+    s.sort_by(f32::total_cmp);
+    let n = s.len();
+    if n % 2 == 1 {
+        s[n / 2]
+    } else {
+        0.5 * (s[n / 2 - 1] + s[n / 2])
+    }
+}
+
+fn bump(counts: &mut Vec<u64>, k: usize) {
+    if counts.len() <= k {
+        counts.resize(k + 1, 0);
+    }
+    counts[k] += 1;
+}
+
+/// Run one episode of one arm. The returned record's `cell` is empty (the caller names it).
 pub fn run_episode(
     policy: &dyn ChunkPolicy,
-    needs: ObsNeeds,
-    seed: u64,
-    stream: ResetStream,
-    h: usize,
-    max_steps: usize,
-    execution: Execution,
-    rng: &mut dyn RngCore,
-) -> Result<EpisodeOutcome, RolloutError> {
+    spec: &EpisodeSpec<'_>,
+) -> Result<EpisodeRecord, RolloutError> {
+    let t_start = Instant::now();
     let (t_p, t_o, d) = (policy.horizon(), policy.n_obs_steps(), policy.action_dim());
+    let h = spec.h;
     if h == 0 || h + t_o > t_p + 1 {
         return Err(RolloutError::Config {
             field: "h",
@@ -111,60 +280,178 @@ pub fn run_episode(
             expected: format!("1..={} (T_p - T_o + 1)", t_p + 1 - t_o),
         });
     }
-    let mut env = PushT::default();
-    env.reset(seed, stream)?;
-    let mut renderer = needs.image.map(|_| Renderer::new(env.goal()));
+    spec.corruption.validate()?;
     let geometry = ChunkGeometry { t_p, t_o, h };
-    let mut ens = match execution {
-        Execution::Ensemble(a) => Some(TemporalEnsembler::new(geometry, d, a)?),
+    let fault = &spec.corruption.fault;
+    let schedule = &spec.corruption.schedule;
+    let clean = spec.corruption.is_clean();
+    let mut times = StageTimes::default();
+
+    let t = Instant::now();
+    let mut env = PushT::default();
+    env.reset(spec.seed, spec.stream)?;
+    times.sim_s += t.elapsed().as_secs_f64();
+    let mut renderer = spec.needs.image.map(|_| Renderer::new(env.goal()));
+    let mut ens = match spec.execution {
+        Execution::Ensemble(a) => Some(TemporalEnsembler::with_options(
+            geometry,
+            d,
+            a,
+            EnsemblerOptions {
+                lookahead: None,
+                bracket_diagnostics: !clean,
+            },
+        )?),
         Execution::OpenLoop => None,
     };
-    let mut history: Vec<Observation> = Vec::with_capacity(t_o);
+    let mut oracle = match (fault, spec.execution) {
+        (Fault::Oracle { mode }, Execution::Ensemble(_)) if !clean => {
+            let mut r = query_rng(spec.noise_seed, spec.seed, 0, 2);
+            Some(OracleState {
+                mode: *mode,
+                direction: (0..d)
+                    .map(|_| if r.random_bool(0.5) { 1.0 } else { -1.0 })
+                    .collect(),
+                live: Vec::new(),
+                ws: Workspace::new(geometry.span() + h, d),
+                values: Vec::new(),
+                flags: Vec::new(),
+                scratch: Vec::new(),
+            })
+        }
+        (Fault::Oracle { .. }, Execution::OpenLoop) if !clean => {
+            return Err(RolloutError::Config {
+                field: "arm",
+                value: "open-loop".into(),
+                expected: "an aggregator: oracle attacks rewrite an ensembler's candidates".into(),
+            });
+        }
+        _ => None,
+    };
+    let bias: Option<[f32; 2]> = match *fault {
+        Fault::CommonMode {
+            magnitude,
+            angle_deg,
+        } => {
+            let a = angle_deg.to_radians();
+            Some([(magnitude * a.cos()) as f32, (magnitude * a.sin()) as f32])
+        }
+        _ => None,
+    };
+    let mut corruptor = ObservationCorruptor::new(fault.clone());
+    let keep = corruptor.frames_needed(t_o).max(t_o + 1);
+    let mut frames: Vec<Observation> = Vec::with_capacity(keep + 1);
     let mut chunk = Vec::new();
+    let mut out = vec![0f32; d];
     let mut max_coverage = env.coverage();
-    for steps in 0..max_steps {
-        // The history holds the last T_o control-rate observations, the first one repeated at
-        // the start (Diffusion Policy's env wrapper records every step's observation).
-        let o = observe(&env, needs, &mut renderer)?;
-        if history.is_empty() {
-            history = vec![o; t_o];
+    let (mut queries, mut corrupted_queries) = (0usize, 0usize);
+    let mut newest_corrupted = false;
+    let (mut m_counts, mut q_counts) = (Vec::new(), Vec::new());
+    let mut bracket = BracketAccumulator::default();
+    let m_min = geometry.m_min();
+    let mut success = false;
+    let mut steps = 0;
+    while steps < spec.max_steps {
+        let t = Instant::now();
+        let o = observe(&env, spec.needs, &mut renderer)?;
+        times.render_s += t.elapsed().as_secs_f64();
+        if frames.is_empty() {
+            frames = vec![o; keep];
         } else {
-            history.remove(0);
-            history.push(o);
+            frames.remove(0);
+            frames.push(o);
         }
         let k = steps % h;
         if k == 0 {
-            chunk = policy.predict_chunk(&history, rng)?;
-            if let Some(e) = ens.as_mut() {
-                e.insert(steps as u64, &chunk, QueryMeta { corrupted: false })?;
+            let i = (steps / h) as u64;
+            let t = Instant::now();
+            let mut crng = query_rng(spec.noise_seed, spec.seed, i, 1);
+            let corrupted = !clean && schedule.corrupts(i, steps as u64, m_min, &mut crng);
+            let window = corruptor.window(&frames, t_o, corrupted, spec.needs.image, &mut crng);
+            times.corruption_s += t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let mut srng = query_rng(spec.noise_seed, spec.seed, i, 0);
+            chunk = policy.predict_chunk(&window, &mut srng)?;
+            times.policy_s += t.elapsed().as_secs_f64();
+            queries += 1;
+            corrupted_queries += usize::from(corrupted);
+            newest_corrupted = corrupted;
+            // Common-mode bias leaves every candidate equally shifted: no clean bracket.
+            let flag = corrupted && bias.is_none();
+            if let Some(o) = oracle.as_mut() {
+                o.live.push((steps as u64, chunk.clone(), flag));
+            } else if let Some(e) = ens.as_mut() {
+                e.insert(steps as u64, &chunk, QueryMeta { corrupted: flag })?;
             }
         }
-        let action: [f64; 2] = match ens.as_mut() {
-            Some(e) => {
-                let s = e.action(steps as u64)?;
-                [f64::from(s.action[0]), f64::from(s.action[1])]
+        let tau = steps as u64;
+        let (m, q) = match (oracle.as_mut(), ens.as_mut(), spec.execution) {
+            (Some(o), _, Execution::Ensemble(agg)) => {
+                let t = Instant::now();
+                let (m, q) = o.candidates(geometry, d, tau);
+                times.corruption_s += t.elapsed().as_secs_f64();
+                let c = Candidates::new(&o.values, d)?;
+                agg.aggregate(&c, &mut o.ws, &mut out)?;
+                if let Some(b) = diagnose(&c, &o.flags, &out) {
+                    let report = StepReport {
+                        tau,
+                        m,
+                        q,
+                        excluded: 0,
+                        excluded_corrupted: 0,
+                        regime: Regime::of(q, m),
+                        oldest_query: 0,
+                        newest_query: tau,
+                    };
+                    bracket.record(&report, &b);
+                }
+                (m, q)
             }
-            None => {
+            (_, Some(e), _) => {
+                let s = e.action(tau)?;
+                out.copy_from_slice(s.action);
+                if let Some(b) = s.bracket {
+                    bracket.record(&s.report, &b);
+                }
+                (s.report.m, s.report.q)
+            }
+            _ => {
                 let r = t_o - 1 + k;
-                [f64::from(chunk[r * d]), f64::from(chunk[r * d + 1])]
+                out.copy_from_slice(&chunk[r * d..(r + 1) * d]);
+                (1, usize::from(newest_corrupted && bias.is_none()))
             }
         };
+        bump(&mut m_counts, m);
+        bump(&mut q_counts, q);
+        if let (Some(b), true) = (bias, newest_corrupted) {
+            for (x, bj) in out.iter_mut().zip(b) {
+                *x += bj;
+            }
+        }
+        let action = [f64::from(out[0]), f64::from(out[1])];
+        let t = Instant::now();
         let info = env.step(action)?;
+        times.sim_s += t.elapsed().as_secs_f64();
+        steps += 1;
         max_coverage = max_coverage.max(info.coverage);
         if info.is_success {
-            return Ok(EpisodeOutcome {
-                seed,
-                success: true,
-                max_coverage,
-                steps: steps + 1,
-            });
+            success = true;
+            break;
         }
     }
-    let steps = max_steps;
-    Ok(EpisodeOutcome {
-        seed,
-        success: false,
+    times.total_s = t_start.elapsed().as_secs_f64();
+    Ok(EpisodeRecord {
+        cell: String::new(),
+        arm: spec.execution.to_string(),
+        seed: spec.seed,
+        success,
         max_coverage,
         steps,
+        queries,
+        corrupted_queries,
+        m_counts,
+        q_counts,
+        bracket: (!clean && ens.is_some()).then_some(bracket),
+        times,
     })
 }

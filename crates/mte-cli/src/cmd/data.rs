@@ -20,6 +20,8 @@ pub fn generate(cli: &Cli, a: &DataGenerateArgs) -> Result<()> {
         max_steps: a.max_steps,
         expert: ExpertConfig {
             action_noise: a.action_noise,
+            travel_step: a.travel_step,
+            push_step: a.push_step,
             ..ExpertConfig::default()
         },
     };

@@ -5,11 +5,11 @@ use std::io::Write as _;
 use anyhow::{Context, Result, ensure};
 use candle_core::Device;
 use mte_eval::Reporter as _;
-use mte_eval::pusht::{Execution, ObsNeeds, run_episode};
+use mte_eval::corruption::CorruptionSpec;
+use mte_eval::pusht::{EpisodeSpec, Execution, ObsNeeds, run_episode};
 use mte_policy::ChunkPolicy as _;
 use mte_policy::checkpoint;
 use mte_policy::config::FeatureType;
-use rand::SeedableRng;
 
 use crate::args::{Cli, EvalPolicyArgs, Format};
 use crate::progress::Bar;
@@ -17,16 +17,12 @@ use crate::progress::Bar;
 /// `mte eval policy`
 pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
     ensure!(a.episodes >= 1, "--episodes must be at least 1");
-    let execution = if a.execution == "open-loop" {
-        Execution::OpenLoop
-    } else {
-        Execution::Ensemble(a.execution.parse().with_context(|| {
-            format!(
-                "--execution {:?}: expected open-loop or an aggregator",
-                a.execution
-            )
-        })?)
-    };
+    let execution: Execution = a.execution.parse().with_context(|| {
+        format!(
+            "--execution {:?}: expected open-loop or an aggregator",
+            a.execution
+        )
+    })?;
     let p = checkpoint::load(&a.checkpoint, &Device::Cpu)
         .with_context(|| format!("loading {}", a.checkpoint.display()))?;
     let c = p.config();
@@ -40,17 +36,17 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
     let mut out = Vec::new();
     for i in 0..a.episodes {
         let seed = a.seed + i as u64;
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.noise_seed ^ seed.rotate_left(17));
-        out.push(run_episode(
-            &p,
+        let spec = EpisodeSpec {
             needs,
             seed,
-            a.stream.into(),
-            a.stride,
-            a.max_steps,
+            stream: a.stream.into(),
+            h: a.stride,
+            max_steps: a.max_steps,
             execution,
-            &mut rng,
-        )?);
+            corruption: &CorruptionSpec::CLEAN,
+            noise_seed: a.noise_seed,
+        };
+        out.push(run_episode(&p, &spec)?);
         bar.advance(1);
     }
     bar.finish();

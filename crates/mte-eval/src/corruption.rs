@@ -1,0 +1,683 @@
+//! Which queries are corrupted (schedules) and what corruption does (faults).
+//!
+//! Corruption acts on the *observation of selected queries* (protocol section 4); the policy
+//! is unchanged. Observation faults act on the exteroceptive channel only (the camera image,
+//! or the block keypoints of a state policy); the agent's own position (proprioception) is
+//! never corrupted. Candidate-level corruptions (common-mode bias, oracle bracket attacks)
+//! act on the chunks' candidates instead and are applied by the runner.
+//!
+//! Units: images are HWC `u8`; intensities in fault parameters are in `[0, 1]` (so
+//! `sigma = 0.1` is 25.5 grey levels); state coordinates are pixels of the 512 x 512
+//! workspace; sizes are pixels of the observation image.
+
+use std::fmt;
+
+use mte_policy::Observation;
+use rand::{Rng, RngCore};
+use rand_distr::{Distribution, Normal};
+use serde::{Deserialize, Serialize};
+
+/// Side of the PushT workspace (px), for mapping image sizes onto keypoints.
+const WORKSPACE: f64 = 512.0;
+
+/// Which queries are corrupted. Query `i` fires at control time `t_i = i h`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case")]
+pub enum Schedule {
+    /// No query.
+    Never,
+    /// Sparse bursts: in every period of `period` consecutive queries (default `M_min` of
+    /// the chunk geometry) a contiguous run of `q` is corrupted: query `i` is corrupted iff
+    /// `(i + phase) mod period < q`.
+    Burst {
+        /// Corrupted queries per period.
+        q: usize,
+        /// Offset of the run within the period.
+        #[serde(default)]
+        phase: usize,
+        /// Period in queries; `None` = `M_min`.
+        #[serde(default)]
+        period: Option<usize>,
+    },
+    /// Every query whose time lies in `[start, end)` (control steps).
+    Dense {
+        /// First control step of the window.
+        start: u64,
+        /// One past the last control step of the window.
+        end: u64,
+    },
+    /// Each query independently with probability `p` (drawn from the episode's corruption
+    /// stream, identical across arms).
+    Bernoulli {
+        /// Probability in `[0, 1]`.
+        p: f64,
+    },
+}
+
+impl Schedule {
+    /// Whether query `i` (at control time `t`) is corrupted; `m_min` is the geometry's
+    /// smallest covering count. `rng` is drawn only by `Bernoulli`.
+    pub fn corrupts(&self, i: u64, t: u64, m_min: usize, rng: &mut dyn RngCore) -> bool {
+        match *self {
+            Self::Never => false,
+            Self::Burst { q, phase, period } => {
+                let p = period.unwrap_or(m_min).max(1) as u64;
+                (i + phase as u64) % p < q as u64
+            }
+            Self::Dense { start, end } => (start..end).contains(&t),
+            Self::Bernoulli { p } => rng.random_bool(p.clamp(0.0, 1.0)),
+        }
+    }
+
+    /// Nominal `q` (burst length; 0 for `Never`; for the others the count is measured, and
+    /// this reports 1 for "some").
+    pub fn q(&self) -> usize {
+        match *self {
+            Self::Never => 0,
+            Self::Burst { q, .. } => q,
+            Self::Dense { start, end } => usize::from(end > start),
+            Self::Bernoulli { p } => usize::from(p > 0.0),
+        }
+    }
+
+    /// Checks parameters.
+    pub fn validate(&self) -> Result<(), CorruptionError> {
+        match *self {
+            Self::Bernoulli { p } if !(0.0..=1.0).contains(&p) => Err(CorruptionError::new(
+                "schedule.p",
+                p,
+                "a probability in [0, 1]",
+            )),
+            Self::Burst {
+                period: Some(0), ..
+            } => Err(CorruptionError::new(
+                "schedule.period",
+                0,
+                "at least 1 query",
+            )),
+            Self::Dense { start, end } if end < start => Err(CorruptionError::new(
+                "schedule.end",
+                end,
+                format!("at least start = {start}"),
+            )),
+            _ => Ok(()),
+        }
+    }
+}
+
+/// Direction an oracle bracket attack pushes in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum OracleMode {
+    /// Each step, per coordinate, the bracket end that moves the median farthest.
+    Instant,
+    /// One direction per coordinate (drawn at the episode start) kept over consecutive
+    /// steps.
+    Drift,
+}
+
+/// What a corrupted query's observation (or its candidates) suffers.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case")]
+pub enum Fault {
+    /// Nothing (a clean cell).
+    None,
+    /// Every pixel zero; for a state policy, the keypoints read zero.
+    Blank,
+    /// The newest frame is replaced by the previous control step's (one missed update).
+    Stale,
+    /// Every frame is the last one seen before the burst began (camera frozen for the
+    /// whole run of consecutive corrupted queries).
+    Frozen,
+    /// A black `size x size` square at a uniformly random position (one per query); for a
+    /// state policy the keypoints inside the square (scaled to the workspace) read zero.
+    Occluder {
+        /// Side in observation pixels (the paper swept up to 48 of 84).
+        size: usize,
+    },
+    /// Box blur of `length` pixels along a random direction (one per query); for a state
+    /// policy, each frame's keypoints are the mean of the last `length` control steps.
+    MotionBlur {
+        /// Kernel length (pixels, or control steps for state).
+        length: usize,
+    },
+    /// Additive Gaussian noise: `sigma` in intensity units `[0, 1]` for images, pixels of
+    /// the workspace for keypoints; images are clamped to `[0, 255]`.
+    GaussianNoise {
+        /// Standard deviation.
+        sigma: f64,
+    },
+    /// Common-mode bias: every candidate covering a control time whose newest query is
+    /// corrupted is shifted by the same vector (`magnitude` px at `angle_deg`).
+    CommonMode {
+        /// Length of the bias (px).
+        magnitude: f64,
+        /// Direction, degrees counter-clockwise from +x.
+        angle_deg: f64,
+    },
+    /// Oracle attack confined to the clean bracket: corrupted candidates take the bracket
+    /// end that moves the coordinate-wise median farthest.
+    Oracle {
+        /// Per-step or consistent direction.
+        mode: OracleMode,
+    },
+}
+
+impl Fault {
+    /// Whether the fault acts on observations (else on candidates, or not at all).
+    pub fn is_observation(&self) -> bool {
+        matches!(
+            self,
+            Self::Blank
+                | Self::Stale
+                | Self::Frozen
+                | Self::Occluder { .. }
+                | Self::MotionBlur { .. }
+                | Self::GaussianNoise { .. }
+        )
+    }
+
+    /// Strength on the fault's natural axis, for plots against attack budget.
+    pub fn budget(&self) -> Option<f64> {
+        match *self {
+            Self::Occluder { size } => Some(size as f64),
+            Self::MotionBlur { length } => Some(length as f64),
+            Self::GaussianNoise { sigma } => Some(sigma),
+            Self::CommonMode { magnitude, .. } => Some(magnitude),
+            _ => None,
+        }
+    }
+
+    /// Checks parameters.
+    pub fn validate(&self) -> Result<(), CorruptionError> {
+        match *self {
+            Self::Occluder { size: 0 } => {
+                Err(CorruptionError::new("fault.size", 0, "at least 1 pixel"))
+            }
+            Self::MotionBlur { length: 0 } => {
+                Err(CorruptionError::new("fault.length", 0, "at least 1"))
+            }
+            Self::GaussianNoise { sigma } if !(sigma.is_finite() && sigma >= 0.0) => Err(
+                CorruptionError::new("fault.sigma", sigma, "a finite value >= 0"),
+            ),
+            Self::CommonMode {
+                magnitude,
+                angle_deg,
+            } if !(magnitude.is_finite() && angle_deg.is_finite()) => Err(CorruptionError::new(
+                "fault.magnitude/angle_deg",
+                format!("{magnitude}/{angle_deg}"),
+                "finite numbers",
+            )),
+            _ => Ok(()),
+        }
+    }
+}
+
+impl fmt::Display for Fault {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::None => f.write_str("none"),
+            Self::Blank => f.write_str("blank"),
+            Self::Stale => f.write_str("stale"),
+            Self::Frozen => f.write_str("frozen"),
+            Self::Occluder { size } => write!(f, "occluder-{size}"),
+            Self::MotionBlur { length } => write!(f, "blur-{length}"),
+            Self::GaussianNoise { sigma } => write!(f, "noise-{sigma}"),
+            Self::CommonMode {
+                magnitude,
+                angle_deg,
+            } => write!(f, "common-{magnitude}@{angle_deg}"),
+            Self::Oracle { mode } => match mode {
+                OracleMode::Instant => f.write_str("oracle-inst"),
+                OracleMode::Drift => f.write_str("oracle-drift"),
+            },
+        }
+    }
+}
+
+/// A fault and the schedule of queries it strikes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CorruptionSpec {
+    /// What happens to a corrupted query.
+    pub fault: Fault,
+    /// Which queries are corrupted.
+    pub schedule: Schedule,
+}
+
+impl CorruptionSpec {
+    /// No corruption.
+    pub const CLEAN: Self = Self {
+        fault: Fault::None,
+        schedule: Schedule::Never,
+    };
+
+    /// Whether nothing is ever corrupted.
+    pub fn is_clean(&self) -> bool {
+        matches!(self.fault, Fault::None) || matches!(self.schedule, Schedule::Never)
+    }
+
+    /// Nominal `q` (0 when clean).
+    pub fn q(&self) -> usize {
+        if self.is_clean() {
+            0
+        } else {
+            self.schedule.q()
+        }
+    }
+
+    /// Checks both parts.
+    pub fn validate(&self) -> Result<(), CorruptionError> {
+        self.fault.validate()?;
+        self.schedule.validate()
+    }
+}
+
+impl fmt::Display for CorruptionSpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.is_clean() {
+            return f.write_str("clean");
+        }
+        match &self.schedule {
+            Schedule::Never => f.write_str("clean"),
+            Schedule::Burst { q, phase, period } => {
+                write!(f, "{}-burst-q{q}", self.fault)?;
+                if *phase != 0 {
+                    write!(f, "-ph{phase}")?;
+                }
+                if let Some(p) = period {
+                    write!(f, "-per{p}")?;
+                }
+                Ok(())
+            }
+            Schedule::Dense { start, end } => write!(f, "{}-dense-{start}-{end}", self.fault),
+            Schedule::Bernoulli { p } => write!(f, "{}-bernoulli-{p}", self.fault),
+        }
+    }
+}
+
+/// A corruption parameter out of range.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("`{field}` = {value}: expected {expected}")]
+pub struct CorruptionError {
+    /// Field.
+    pub field: &'static str,
+    /// Value given.
+    pub value: String,
+    /// What was expected.
+    pub expected: String,
+}
+
+impl CorruptionError {
+    fn new(field: &'static str, value: impl fmt::Display, expected: impl Into<String>) -> Self {
+        Self {
+            field,
+            value: value.to_string(),
+            expected: expected.into(),
+        }
+    }
+}
+
+/// Applies an observation fault to the input window of corrupted queries, keeping what the
+/// fault needs across queries (the frozen frame).
+#[derive(Debug, Clone)]
+pub struct ObservationCorruptor {
+    fault: Fault,
+    /// Exteroceptive frame held while the camera is frozen.
+    frozen: Option<Observation>,
+}
+
+impl ObservationCorruptor {
+    /// A corruptor for `fault` (faults that are not observation faults leave windows as
+    /// they are).
+    pub fn new(fault: Fault) -> Self {
+        Self {
+            fault,
+            frozen: None,
+        }
+    }
+
+    /// How many control-rate frames before the window the fault may read (stale: 1, blur:
+    /// `length - 1`, frozen: the runner passes the last clean frame separately).
+    pub fn frames_needed(&self, t_o: usize) -> usize {
+        match self.fault {
+            Fault::Stale => t_o + 1,
+            Fault::MotionBlur { length } => t_o + length.saturating_sub(1),
+            _ => t_o,
+        }
+    }
+
+    /// The window the policy sees at a query. `frames` holds the clean control-rate
+    /// observations, oldest first, the last `t_o` being the query's own window (at least
+    /// [`frames_needed`](Self::frames_needed) of them, the first repeated at episode
+    /// start). `corrupted` says whether this query is struck; a clean query also ends a
+    /// freeze. `image_size` is (width, height) of image observations.
+    pub fn window(
+        &mut self,
+        frames: &[Observation],
+        t_o: usize,
+        corrupted: bool,
+        image_size: Option<(usize, usize)>,
+        rng: &mut dyn RngCore,
+    ) -> Vec<Observation> {
+        let n = frames.len();
+        debug_assert!(n >= t_o);
+        let mut win: Vec<Observation> = frames[n - t_o..].to_vec();
+        if !corrupted || !self.fault.is_observation() {
+            if !corrupted {
+                self.frozen = None;
+            }
+            return win;
+        }
+        match self.fault {
+            Fault::Blank => {
+                for o in &mut win {
+                    if let Some(img) = o.image.as_mut() {
+                        img.fill(0);
+                    }
+                    if let Some(kp) = o.env_state.as_mut() {
+                        kp.fill(0.0);
+                    }
+                }
+            }
+            Fault::Stale => {
+                let prev = &frames[n.saturating_sub(2)];
+                copy_extero(prev, &mut win[t_o - 1]);
+            }
+            Fault::Frozen => {
+                // The frame before the burst: the newest frame of the window preceding this
+                // query's newest frame, captured at the first corrupted query.
+                let held = self
+                    .frozen
+                    .get_or_insert_with(|| frames[n.saturating_sub(2)].clone())
+                    .clone();
+                for o in &mut win {
+                    copy_extero(&held, o);
+                }
+            }
+            Fault::Occluder { size } => {
+                let (ux, uy) = (rng.random::<f64>(), rng.random::<f64>());
+                for o in &mut win {
+                    occlude(o, size, ux, uy, image_size);
+                }
+            }
+            Fault::MotionBlur { length } => {
+                let angle = rng.random::<f64>() * std::f64::consts::TAU;
+                for (k, o) in win.iter_mut().enumerate() {
+                    if let (Some(img), Some((w, h))) = (o.image.as_mut(), image_size) {
+                        blur_image(img, w, h, length, angle);
+                    }
+                    if o.env_state.is_some() {
+                        // Mean of the last `length` frames ending at this one.
+                        let end = n - t_o + k + 1;
+                        let begin = end.saturating_sub(length);
+                        let src = &frames[begin..end];
+                        if let Some(kp) = o.env_state.as_mut() {
+                            for (j, v) in kp.iter_mut().enumerate() {
+                                let s: f64 = src
+                                    .iter()
+                                    .map(|f| f64::from(f.env_state.as_ref().map_or(0.0, |e| e[j])))
+                                    .sum();
+                                *v = (s / src.len() as f64) as f32;
+                            }
+                        }
+                    }
+                }
+            }
+            Fault::GaussianNoise { sigma } => {
+                let img_noise = Normal::new(0.0, sigma * 255.0).ok();
+                let kp_noise = Normal::new(0.0, sigma).ok();
+                for o in &mut win {
+                    if let (Some(img), Some(nd)) = (o.image.as_mut(), img_noise) {
+                        for p in img.iter_mut() {
+                            let v = f64::from(*p) + nd.sample(rng);
+                            *p = v.round().clamp(0.0, 255.0) as u8;
+                        }
+                    }
+                    if let (Some(kp), Some(nd)) = (o.env_state.as_mut(), kp_noise) {
+                        for v in kp.iter_mut() {
+                            *v = (f64::from(*v) + nd.sample(rng)) as f32;
+                        }
+                    }
+                }
+            }
+            Fault::None | Fault::CommonMode { .. } | Fault::Oracle { .. } => {}
+        }
+        win
+    }
+}
+
+/// Copies the exteroceptive channels (image, keypoints) of `src` into `dst`.
+fn copy_extero(src: &Observation, dst: &mut Observation) {
+    dst.image.clone_from(&src.image);
+    dst.env_state.clone_from(&src.env_state);
+}
+
+/// Blacks out a `size` square whose top-left corner sits at fraction (`ux`, `uy`) of the
+/// free range; keypoints inside the same square of the workspace read zero.
+fn occlude(o: &mut Observation, size: usize, ux: f64, uy: f64, image_size: Option<(usize, usize)>) {
+    if let (Some(img), Some((w, h))) = (o.image.as_mut(), image_size) {
+        let s = size.min(w).min(h);
+        let x0 = (ux * (w - s) as f64).floor() as usize;
+        let y0 = (uy * (h - s) as f64).floor() as usize;
+        for y in y0..y0 + s {
+            img[(y * w + x0) * 3..(y * w + x0 + s) * 3].fill(0);
+        }
+    }
+    if let Some(kp) = o.env_state.as_mut() {
+        // The square in workspace pixels, taking a 96-pixel camera when no image is
+        // rendered (the dataset's default).
+        let side = image_size.map_or(96.0, |(w, _)| w as f64);
+        let s = (size as f64 * WORKSPACE / side).min(WORKSPACE);
+        let (x0, y0) = (ux * (WORKSPACE - s), uy * (WORKSPACE - s));
+        for p in kp.chunks_exact_mut(2) {
+            let (x, y) = (f64::from(p[0]), f64::from(p[1]));
+            if (x0..x0 + s).contains(&x) && (y0..y0 + s).contains(&y) {
+                p[0] = 0.0;
+                p[1] = 0.0;
+            }
+        }
+    }
+}
+
+/// Box blur of `length` taps along `angle`, sampling nearest pixels, clamped at the edges.
+fn blur_image(img: &mut [u8], w: usize, h: usize, length: usize, angle: f64) {
+    if length <= 1 {
+        return;
+    }
+    let src = img.to_vec();
+    let (dx, dy) = (angle.cos(), angle.sin());
+    let half = (length as f64 - 1.0) / 2.0;
+    let offsets: Vec<(isize, isize)> = (0..length)
+        .map(|k| {
+            let s = k as f64 - half;
+            ((s * dx).round() as isize, (s * dy).round() as isize)
+        })
+        .collect();
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = [0u32; 3];
+            for &(ox, oy) in &offsets {
+                let sx = (x as isize + ox).clamp(0, w as isize - 1) as usize;
+                let sy = (y as isize + oy).clamp(0, h as isize - 1) as usize;
+                let i = (sy * w + sx) * 3;
+                for c in 0..3 {
+                    acc[c] += u32::from(src[i + c]);
+                }
+            }
+            let i = (y * w + x) * 3;
+            for c in 0..3 {
+                img[i + c] = ((acc[c] + length as u32 / 2) / length as u32) as u8;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    fn frame(v: u8, kp: f32) -> Observation {
+        Observation {
+            state: vec![1.0, 2.0],
+            env_state: Some(vec![kp; 16]),
+            image: Some(vec![v; 8 * 8 * 3]),
+        }
+    }
+
+    #[test]
+    fn burst_schedule_follows_the_formula() {
+        let s = Schedule::Burst {
+            q: 2,
+            phase: 1,
+            period: None,
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let hits: Vec<bool> = (0..14).map(|i| s.corrupts(i, i * 2, 7, &mut rng)).collect();
+        for (i, &hit) in hits.iter().enumerate() {
+            assert_eq!(hit, (i + 1) % 7 < 2, "query {i}");
+        }
+        assert_eq!(hits.iter().filter(|&&x| x).count(), 4);
+    }
+
+    #[test]
+    fn dense_and_bernoulli_schedules() {
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let d = Schedule::Dense { start: 10, end: 20 };
+        assert!(!d.corrupts(4, 8, 7, &mut rng));
+        assert!(d.corrupts(5, 10, 7, &mut rng));
+        assert!(!d.corrupts(10, 20, 7, &mut rng));
+        let b = Schedule::Bernoulli { p: 0.3 };
+        let n = (0..10_000)
+            .filter(|&i| b.corrupts(i, i, 7, &mut rng))
+            .count();
+        assert!((2700..3300).contains(&n), "{n}");
+        assert!(Schedule::Bernoulli { p: 1.5 }.validate().is_err());
+        assert!(Schedule::Dense { start: 5, end: 1 }.validate().is_err());
+    }
+
+    #[test]
+    fn faults_touch_only_the_exteroceptive_channel_of_corrupted_queries() {
+        let frames = vec![frame(10, 1.0), frame(20, 2.0), frame(30, 3.0)];
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        let mut blank = ObservationCorruptor::new(Fault::Blank);
+        let clean = blank.window(&frames, 2, false, Some((8, 8)), &mut rng);
+        assert_eq!(clean, frames[1..].to_vec());
+        let w = blank.window(&frames, 2, true, Some((8, 8)), &mut rng);
+        for o in &w {
+            assert!(o.image.as_ref().is_some_and(|i| i.iter().all(|&p| p == 0)));
+            assert!(
+                o.env_state
+                    .as_ref()
+                    .is_some_and(|k| k.iter().all(|&v| v == 0.0))
+            );
+            assert_eq!(o.state, vec![1.0, 2.0]);
+        }
+        let mut stale = ObservationCorruptor::new(Fault::Stale);
+        let w = stale.window(&frames, 2, true, Some((8, 8)), &mut rng);
+        assert_eq!(w[1].image, frames[1].image);
+        assert_eq!(w[0].image, frames[1].image);
+    }
+
+    #[test]
+    fn frozen_camera_holds_the_frame_before_the_burst_until_a_clean_query() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut c = ObservationCorruptor::new(Fault::Frozen);
+        let f1 = vec![frame(1, 1.0), frame(2, 2.0), frame(3, 3.0)];
+        let w = c.window(&f1, 2, true, Some((8, 8)), &mut rng);
+        assert!(w.iter().all(|o| o.image == frame(2, 0.0).image));
+        let f2 = vec![frame(3, 3.0), frame(4, 4.0), frame(5, 5.0)];
+        let w = c.window(&f2, 2, true, Some((8, 8)), &mut rng);
+        assert!(
+            w.iter().all(|o| o.image == frame(2, 0.0).image),
+            "still frozen"
+        );
+        let w = c.window(&f2, 2, false, Some((8, 8)), &mut rng);
+        assert_eq!(w, f2[1..].to_vec());
+        let w = c.window(&f2, 2, true, Some((8, 8)), &mut rng);
+        assert!(
+            w.iter().all(|o| o.image == frame(4, 0.0).image),
+            "a new freeze"
+        );
+    }
+
+    #[test]
+    fn occluder_blacks_out_exactly_a_square() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let mut c = ObservationCorruptor::new(Fault::Occluder { size: 3 });
+        let frames = vec![frame(200, 100.0), frame(200, 100.0)];
+        let w = c.window(&frames, 2, true, Some((8, 8)), &mut rng);
+        for o in &w {
+            let zeros = o
+                .image
+                .as_ref()
+                .map_or(0, |i| i.iter().filter(|&&p| p == 0).count());
+            assert_eq!(zeros, 3 * 3 * 3);
+        }
+        assert_eq!(w[0].image, w[1].image, "one position per query");
+        assert!(Fault::Occluder { size: 0 }.validate().is_err());
+    }
+
+    #[test]
+    fn motion_blur_preserves_a_flat_image_and_averages_keypoints() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut c = ObservationCorruptor::new(Fault::MotionBlur { length: 3 });
+        let frames = vec![
+            frame(90, 0.0),
+            frame(90, 3.0),
+            frame(90, 6.0),
+            frame(90, 9.0),
+        ];
+        let w = c.window(&frames, 2, true, Some((8, 8)), &mut rng);
+        assert!(
+            w.iter()
+                .all(|o| o.image.as_ref().is_some_and(|i| i.iter().all(|&p| p == 90)))
+        );
+        assert_eq!(w[0].env_state.as_ref().map(|k| k[0]), Some(3.0));
+        assert_eq!(w[1].env_state.as_ref().map(|k| k[0]), Some(6.0));
+        let mut img = vec![0u8; 8 * 8 * 3];
+        img[(4 * 8 + 4) * 3] = 255;
+        blur_image(&mut img, 8, 8, 3, 0.0);
+        assert_eq!(img[(4 * 8 + 3) * 3], 85);
+        assert_eq!(img[(4 * 8 + 5) * 3], 85);
+        assert_eq!(img[(4 * 8 + 4) * 3], 85);
+    }
+
+    #[test]
+    fn gaussian_noise_is_seeded_and_clamped() {
+        let frames = vec![frame(250, 0.0), frame(5, 0.0)];
+        let run = |seed| {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            ObservationCorruptor::new(Fault::GaussianNoise { sigma: 0.2 }).window(
+                &frames,
+                2,
+                true,
+                Some((8, 8)),
+                &mut rng,
+            )
+        };
+        assert_eq!(run(7), run(7));
+        assert_ne!(run(7), run(8));
+        assert!(Fault::GaussianNoise { sigma: f64::NAN }.validate().is_err());
+    }
+
+    #[test]
+    fn specs_round_trip_and_name_themselves() {
+        let s = CorruptionSpec {
+            fault: Fault::Occluder { size: 24 },
+            schedule: Schedule::Burst {
+                q: 2,
+                phase: 0,
+                period: None,
+            },
+        };
+        let j = serde_json::to_string(&s).unwrap_or_default();
+        let back: CorruptionSpec = serde_json::from_str(&j).unwrap_or(CorruptionSpec::CLEAN);
+        assert_eq!(back, s);
+        assert_eq!(s.to_string(), "occluder-24-burst-q2");
+        assert_eq!(s.q(), 2);
+        assert_eq!(CorruptionSpec::CLEAN.to_string(), "clean");
+        assert_eq!(CorruptionSpec::CLEAN.q(), 0);
+    }
+}

@@ -1,0 +1,159 @@
+//! What a run directory holds: the cell definitions and one JSON line per episode.
+//!
+//! A run directory (`mte-run-v1`) is
+//!
+//! ```text
+//! RUN_DIR/
+//!   spec.toml          the resolved sweep spec (every default filled in)
+//!   manifest.json      format, git commit, versions, start time, the cell list (CellSpec)
+//!   cells/<id>.jsonl   one Line per finished episode and arm, appended and flushed
+//! ```
+//!
+//! Lines are self-describing (`"kind": "episode"` or `"kind": "error"`) and carry the cell
+//! id, so a report needs nothing but the files. Times are seconds, coverage is gym-pusht's
+//! intersection over goal area in `[0, 1]`, actions are pixels of the 512 x 512 workspace.
+
+use mte_ensemble::BracketAccumulator;
+use serde::{Deserialize, Serialize};
+
+use crate::corruption::CorruptionSpec;
+
+/// The format tag written in every manifest.
+pub const RUN_FORMAT: &str = "mte-run-v1";
+
+/// One cell of a grid: a policy, a corruption, a stride and the arms compared on the same
+/// episodes. Arms of a cell pair episode by episode (same seeds, same per-query sampling
+/// noise, same corruption schedule).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CellSpec {
+    /// File-name-safe identifier, unique in the run.
+    pub id: String,
+    /// Policy label (the checkpoint directory as given in the spec).
+    pub policy: String,
+    /// What corrupts which queries.
+    pub corruption: CorruptionSpec,
+    /// Query stride `h` (control steps between queries).
+    pub h: usize,
+    /// Arms in their text form: `open-loop` or an aggregator (`ewm:0.01`, `median`, ...).
+    pub arms: Vec<String>,
+    /// Episode reset seeds, in order.
+    pub seeds: Vec<u64>,
+    /// Step limit per episode.
+    pub max_steps: usize,
+}
+
+impl CellSpec {
+    /// Nominal number of corrupted queries per period (`q` of the burst schedule; 0 when
+    /// clean).
+    pub fn q(&self) -> usize {
+        self.corruption.q()
+    }
+
+    /// Strength of the corruption on its natural axis (PGD iterations, occluder size in
+    /// pixels, noise standard deviation, bias magnitude), for plots against attack budget.
+    pub fn budget(&self) -> Option<f64> {
+        self.corruption.fault.budget()
+    }
+}
+
+/// Wall time spent per stage of an episode (seconds). `runner` is everything that is not
+/// the policy, the simulator, rendering or the corruption itself: observation bookkeeping,
+/// the ensembler, diagnostics, recording.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StageTimes {
+    /// Policy queries (sampling a chunk).
+    pub policy_s: f64,
+    /// Physics steps.
+    pub sim_s: f64,
+    /// Rendering observations.
+    pub render_s: f64,
+    /// Corrupting observations or candidates (attacks included).
+    pub corruption_s: f64,
+    /// Ensembling and bracket diagnostics.
+    pub ensemble_s: f64,
+    /// Whole episode.
+    pub total_s: f64,
+}
+
+impl StageTimes {
+    /// Time not accounted to the policy, simulator, renderer or corruption: the runner's
+    /// own overhead (ensembler included).
+    pub fn overhead_s(&self) -> f64 {
+        (self.total_s - self.policy_s - self.sim_s - self.render_s - self.corruption_s).max(0.0)
+    }
+}
+
+/// One episode of one arm.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeRecord {
+    /// Cell id.
+    pub cell: String,
+    /// Arm text form.
+    pub arm: String,
+    /// Reset seed.
+    pub seed: u64,
+    /// Coverage above gym-pusht's 0.95 threshold was reached.
+    pub success: bool,
+    /// Largest coverage over the episode (Diffusion Policy's PushT score).
+    pub max_coverage: f64,
+    /// Control steps run.
+    pub steps: usize,
+    /// Policy queries made.
+    pub queries: usize,
+    /// Of those, how many were corrupted.
+    pub corrupted_queries: usize,
+    /// `m_counts[m]`: control steps whose covering set had `M(tau) = m` chunks (ensemble
+    /// arms; open loop has `M = 1`).
+    pub m_counts: Vec<u64>,
+    /// `q_counts[q]`: control steps with `q(tau) = q` corrupted covering chunks, measured.
+    pub q_counts: Vec<u64>,
+    /// Bracket diagnostics of the steps with a corrupted candidate (ensemble arms).
+    pub bracket: Option<BracketAccumulator>,
+    /// Time per stage.
+    pub times: StageTimes,
+}
+
+/// A cell (or one episode of it) that failed; the sweep records it and goes on.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ErrorRecord {
+    /// Cell id.
+    pub cell: String,
+    /// Arm, when the failure belongs to one.
+    pub arm: Option<String>,
+    /// Seed, when the failure belongs to one episode.
+    pub seed: Option<u64>,
+    /// The error, as displayed.
+    pub error: String,
+}
+
+/// One line of a cell file.
+// Episodes are the common case and errors are rare, so boxing the large variant would only
+// add an allocation per line.
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Line {
+    /// A finished episode.
+    Episode(EpisodeRecord),
+    /// A failure.
+    Error(ErrorRecord),
+}
+
+/// The manifest of a run directory.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    /// [`RUN_FORMAT`].
+    pub format: String,
+    /// Run name (from the spec).
+    pub name: String,
+    /// `git rev-parse HEAD` of the source tree, when known.
+    pub git_commit: Option<String>,
+    /// mte's version.
+    pub mte_version: String,
+    /// When the run was created (seconds since the Unix epoch).
+    pub created_unix_s: u64,
+    /// Seed of the per-query sampling noise (shared by all arms).
+    pub noise_seed: u64,
+    /// Every cell of the grid (all shards).
+    pub cells: Vec<CellSpec>,
+}

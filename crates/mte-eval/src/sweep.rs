@@ -1,0 +1,499 @@
+//! Sweeps: a TOML grid of policy x corruption x q x h (arms within each cell), run in
+//! parallel into a [`RunDir`], resumable and shardable.
+//!
+//! ```toml
+//! name = "blank-burst"
+//! policies = ["assets/policies/pusht_keypoints_cpu"]
+//! arms = ["ewm:0.01", "median"]      # compared on the same episodes
+//! h = [2]
+//! seeds = { first = 100000, count = 20 }
+//! max_steps = 300                     # default 300 (gym-pusht's limit)
+//! noise_seed = 0                      # per-query sampling noise, shared by the arms
+//! stream = "legacy"                   # reset stream
+//!
+//! [[corruptions]]
+//! fault = { kind = "blank" }
+//! q = [0, 1, 2, 3]                    # burst schedule; q = 0 is the clean cell
+//!
+//! [[corruptions]]
+//! fault = { kind = "occluder", size = 24 }
+//! schedules = [{ kind = "dense", start = 40, end = 80 }]
+//! ```
+//!
+//! A clean cell (q = 0, or fault `none`) is made once per policy and `h`, however many
+//! corruption entries ask for it. `--shard i/n` runs cells `i, i + n, ...` of the grid; the
+//! shards may share one directory (cells have separate files) or write several that
+//! [`crate::store::load_runs`] merges.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+use std::sync::Mutex;
+
+use mte_policy::config::FeatureType;
+use mte_sim::ResetStream;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::Reporter;
+use crate::corruption::{CorruptionSpec, Fault, Schedule};
+use crate::pusht::{EpisodeSpec, Execution, ObsNeeds, run_episode};
+use crate::record::{CellSpec, ErrorRecord, Line, Manifest, RUN_FORMAT};
+use crate::store::{CellWriter, RunDir, StoreError};
+
+/// Episode seeds: a range or an explicit list.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Seeds {
+    /// `first, first + 1, ..., first + count - 1`.
+    Range {
+        /// First seed.
+        first: u64,
+        /// How many.
+        count: usize,
+    },
+    /// These seeds.
+    List(Vec<u64>),
+}
+
+impl Seeds {
+    /// The seeds in order.
+    pub fn to_vec(&self) -> Vec<u64> {
+        match self {
+            Self::Range { first, count } => (0..*count as u64).map(|i| first + i).collect(),
+            Self::List(v) => v.clone(),
+        }
+    }
+}
+
+/// One corruption entry of a sweep.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CorruptionEntry {
+    /// The fault.
+    pub fault: Fault,
+    /// Burst lengths (burst schedule with period `M_min`); 0 = clean.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub q: Vec<usize>,
+    /// Burst phase.
+    #[serde(default)]
+    pub phase: usize,
+    /// Explicit schedules (instead of, or besides, `q`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub schedules: Vec<Schedule>,
+}
+
+/// A sweep spec (see the module docs).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SweepSpec {
+    /// Run name.
+    pub name: String,
+    /// Policy checkpoint directories.
+    pub policies: Vec<String>,
+    /// Arms compared in every cell.
+    pub arms: Vec<String>,
+    /// Query strides.
+    pub h: Vec<usize>,
+    /// Episode seeds (Diffusion Policy's PushT test seeds are 100000..100049).
+    pub seeds: Seeds,
+    /// Step limit per episode.
+    #[serde(default = "default_max_steps")]
+    pub max_steps: usize,
+    /// Seed of the per-query sampling noise and corruption streams.
+    #[serde(default)]
+    pub noise_seed: u64,
+    /// Reset stream.
+    #[serde(default)]
+    pub stream: ResetStream,
+    /// Corruptions.
+    pub corruptions: Vec<CorruptionEntry>,
+}
+
+fn default_max_steps() -> usize {
+    300
+}
+
+/// Errors of a sweep.
+#[derive(Debug, thiserror::Error)]
+pub enum SweepError {
+    /// The spec did not parse.
+    #[error("sweep spec: {0}")]
+    Toml(String),
+    /// A spec value is out of range.
+    #[error("sweep spec: `{field}` = {value}: expected {expected}")]
+    Field {
+        /// Field.
+        field: &'static str,
+        /// Value.
+        value: String,
+        /// Expectation.
+        expected: String,
+    },
+    /// The results store failed.
+    #[error(transparent)]
+    Store(#[from] StoreError),
+}
+
+fn field(f: &'static str, v: impl ToString, e: impl Into<String>) -> SweepError {
+    SweepError::Field {
+        field: f,
+        value: v.to_string(),
+        expected: e.into(),
+    }
+}
+
+impl SweepSpec {
+    /// Parses TOML.
+    pub fn from_toml(text: &str) -> Result<Self, SweepError> {
+        let s: Self = toml::from_str(text).map_err(|e| SweepError::Toml(e.to_string()))?;
+        s.validate()?;
+        Ok(s)
+    }
+
+    /// The spec with every default written out.
+    pub fn to_toml(&self) -> Result<String, SweepError> {
+        toml::to_string(self).map_err(|e| SweepError::Toml(e.to_string()))
+    }
+
+    /// Checks the grid.
+    pub fn validate(&self) -> Result<(), SweepError> {
+        if self.policies.is_empty() {
+            return Err(field("policies", "[]", "at least one checkpoint directory"));
+        }
+        if self.arms.is_empty() {
+            return Err(field("arms", "[]", "at least one arm"));
+        }
+        for a in &self.arms {
+            Execution::from_str(a)
+                .map_err(|e| field("arms", a, format!("open-loop or an aggregator ({e})")))?;
+        }
+        if self.h.is_empty() || self.h.contains(&0) {
+            return Err(field("h", format!("{:?}", self.h), "strides >= 1"));
+        }
+        if self.seeds.to_vec().is_empty() {
+            return Err(field("seeds", "none", "at least one seed"));
+        }
+        if self.max_steps == 0 {
+            return Err(field("max_steps", 0, "at least 1"));
+        }
+        if self.corruptions.is_empty() {
+            return Err(field("corruptions", "[]", "at least one entry"));
+        }
+        for c in &self.corruptions {
+            c.fault
+                .validate()
+                .map_err(|e| field("corruptions.fault", &c.fault, e.to_string()))?;
+            for s in &c.schedules {
+                s.validate()
+                    .map_err(|e| field("corruptions.schedules", format!("{s:?}"), e.to_string()))?;
+            }
+            if c.q.is_empty() && c.schedules.is_empty() {
+                return Err(field("corruptions.q", "[]", "burst lengths or `schedules`"));
+            }
+        }
+        Ok(())
+    }
+
+    /// The grid's cells, in a stable order (policy, h, corruption entry, q / schedule).
+    pub fn cells(&self) -> Vec<CellSpec> {
+        let seeds = self.seeds.to_vec();
+        let mut cells: Vec<CellSpec> = Vec::new();
+        for p in &self.policies {
+            let label = policy_label(p);
+            for &h in &self.h {
+                let mut push = |corruption: CorruptionSpec| {
+                    let id = sanitize(&format!("{label}-{corruption}-h{h}"));
+                    if !cells.iter().any(|c| c.id == id) {
+                        cells.push(CellSpec {
+                            id,
+                            policy: p.clone(),
+                            corruption,
+                            h,
+                            arms: self.arms.clone(),
+                            seeds: seeds.clone(),
+                            max_steps: self.max_steps,
+                        });
+                    }
+                };
+                for c in &self.corruptions {
+                    for &q in &c.q {
+                        push(if q == 0 || c.fault == Fault::None {
+                            CorruptionSpec::CLEAN
+                        } else {
+                            CorruptionSpec {
+                                fault: c.fault.clone(),
+                                schedule: Schedule::Burst {
+                                    q,
+                                    phase: c.phase,
+                                    period: None,
+                                },
+                            }
+                        });
+                    }
+                    for s in &c.schedules {
+                        push(CorruptionSpec {
+                            fault: c.fault.clone(),
+                            schedule: s.clone(),
+                        });
+                    }
+                }
+            }
+        }
+        cells
+    }
+
+    /// The manifest of a new run of this spec.
+    pub fn manifest(&self, git_commit: Option<String>, created_unix_s: u64) -> Manifest {
+        Manifest {
+            format: RUN_FORMAT.into(),
+            name: self.name.clone(),
+            git_commit,
+            mte_version: env!("CARGO_PKG_VERSION").into(),
+            created_unix_s,
+            noise_seed: self.noise_seed,
+            cells: self.cells(),
+        }
+    }
+}
+
+/// The last path component, as a short label.
+fn policy_label(p: &str) -> String {
+    Path::new(p)
+        .file_name()
+        .map_or_else(|| p.to_string(), |s| s.to_string_lossy().into_owned())
+}
+
+/// Keeps `[A-Za-z0-9._-]`, maps the rest to `_`.
+fn sanitize(s: &str) -> String {
+    s.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+/// Which part of the grid this process runs: cells `index, index + count, ...`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Shard {
+    /// 0-based shard index.
+    pub index: usize,
+    /// Number of shards.
+    pub count: usize,
+}
+
+impl Default for Shard {
+    fn default() -> Self {
+        Self { index: 0, count: 1 }
+    }
+}
+
+impl FromStr for Shard {
+    type Err = SweepError;
+    /// `i/n` with `0 <= i < n`.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let bad = || field("shard", s, "i/n with 0 <= i < n (e.g. 0/4)");
+        let (i, n) = s.split_once('/').ok_or_else(bad)?;
+        let (index, count) = (
+            i.trim().parse().map_err(|_| bad())?,
+            n.trim().parse().map_err(|_| bad())?,
+        );
+        if count == 0 || index >= count {
+            return Err(bad());
+        }
+        Ok(Self { index, count })
+    }
+}
+
+/// A policy the runner can load by its spec string.
+pub trait PolicySource: Sync {
+    /// Loads (or returns a cached) policy and the observations it reads.
+    fn load(
+        &self,
+        path: &str,
+    ) -> Result<(Box<dyn mte_policy::ChunkPolicy + Send + Sync>, ObsNeeds), String>;
+}
+
+/// Loads Diffusion Policy checkpoints from directories (CPU).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct CheckpointSource;
+
+impl PolicySource for CheckpointSource {
+    fn load(
+        &self,
+        path: &str,
+    ) -> Result<(Box<dyn mte_policy::ChunkPolicy + Send + Sync>, ObsNeeds), String> {
+        let p = mte_policy::checkpoint::load(Path::new(path), &candle_core::Device::Cpu)
+            .map_err(|e| format!("loading policy {path}: {e}"))?;
+        let c = p.config();
+        let needs = ObsNeeds {
+            env_state: c.vector_dim(FeatureType::Env).is_some(),
+            image: c.image_shape().map(|[_, h, w]| (w, h)),
+        };
+        Ok((Box::new(p), needs))
+    }
+}
+
+/// What [`run`] did.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct SweepSummary {
+    /// Cells in this shard.
+    pub cells: usize,
+    /// Episodes run now.
+    pub episodes_run: usize,
+    /// Episodes skipped as already finished.
+    pub episodes_skipped: usize,
+    /// Errors recorded.
+    pub errors: usize,
+}
+
+/// Runs this shard of the grid into `run`, `workers` episodes at a time, skipping finished
+/// (arm, seed) pairs. Each finished episode is appended and synced at once.
+pub fn run(
+    spec: &SweepSpec,
+    manifest: &Manifest,
+    run: &RunDir,
+    shard: Shard,
+    workers: usize,
+    policies: &dyn PolicySource,
+    reporter: &dyn Reporter,
+) -> Result<SweepSummary, SweepError> {
+    let cells: Vec<&CellSpec> = manifest
+        .cells
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| i % shard.count == shard.index)
+        .map(|(_, c)| c)
+        .collect();
+    // Work list: (cell, seed, arms still to run).
+    let mut tasks: Vec<(usize, u64, Vec<Execution>)> = Vec::new();
+    let mut skipped = 0;
+    let mut writers: Vec<Mutex<CellWriter>> = Vec::new();
+    for (ci, c) in cells.iter().enumerate() {
+        let done = run.finished(&c.id)?;
+        writers.push(Mutex::new(run.writer(&c.id)?));
+        for &seed in &c.seeds {
+            let mut arms = Vec::new();
+            for a in &c.arms {
+                if done.contains(&(a.clone(), seed)) {
+                    skipped += 1;
+                } else {
+                    arms.push(Execution::from_str(a).map_err(|e| field("arms", a, e.to_string()))?);
+                }
+            }
+            if !arms.is_empty() {
+                tasks.push((ci, seed, arms));
+            }
+        }
+    }
+    let total: usize = tasks.iter().map(|t| t.2.len()).sum();
+    reporter.start("episodes", total as u64);
+    // Load each policy once; a failure fails its cells, not the sweep.
+    let mut loaded: HashMap<&str, Result<_, String>> = HashMap::new();
+    for c in &cells {
+        loaded
+            .entry(c.policy.as_str())
+            .or_insert_with(|| policies.load(&c.policy));
+    }
+    let errors = Mutex::new(0usize);
+    let append = |ci: usize, line: Line| -> Result<(), SweepError> {
+        if matches!(line, Line::Error(_)) {
+            *errors.lock().map_err(|_| poisoned())? += 1;
+        }
+        writers[ci]
+            .lock()
+            .map_err(|_| poisoned())?
+            .append(&line)
+            .map_err(SweepError::from)
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(workers.max(1))
+        .build()
+        .map_err(|e| field("workers", workers, format!("a thread pool ({e})")))?;
+    let results: Vec<Result<usize, SweepError>> = pool.install(|| {
+        tasks
+            .par_iter()
+            .map(|(ci, seed, arms)| -> Result<usize, SweepError> {
+                let c = cells[*ci];
+                let (policy, needs) = match loaded.get(c.policy.as_str()) {
+                    Some(Ok((p, n))) => (p, *n),
+                    Some(Err(e)) => {
+                        for a in arms {
+                            append(
+                                *ci,
+                                Line::Error(ErrorRecord {
+                                    cell: c.id.clone(),
+                                    arm: Some(a.to_string()),
+                                    seed: Some(*seed),
+                                    error: e.clone(),
+                                }),
+                            )?;
+                            reporter.advance(1);
+                        }
+                        return Ok(0);
+                    }
+                    None => return Ok(0),
+                };
+                let mut ran = 0;
+                for &execution in arms {
+                    let ep = EpisodeSpec {
+                        needs,
+                        seed: *seed,
+                        stream: spec.stream,
+                        h: c.h,
+                        max_steps: c.max_steps,
+                        execution,
+                        corruption: &c.corruption,
+                        noise_seed: manifest.noise_seed,
+                    };
+                    let line = match run_episode(policy.as_ref(), &ep) {
+                        Ok(mut r) => {
+                            r.cell = c.id.clone();
+                            ran += 1;
+                            Line::Episode(r)
+                        }
+                        Err(e) => Line::Error(ErrorRecord {
+                            cell: c.id.clone(),
+                            arm: Some(execution.to_string()),
+                            seed: Some(*seed),
+                            error: e.to_string(),
+                        }),
+                    };
+                    append(*ci, line)?;
+                    reporter.advance(1);
+                }
+                Ok(ran)
+            })
+            .collect()
+    });
+    reporter.finish();
+    let mut episodes_run = 0;
+    for r in results {
+        episodes_run += r?;
+    }
+    let errors = *errors.lock().map_err(|_| poisoned())?;
+    Ok(SweepSummary {
+        cells: cells.len(),
+        episodes_run,
+        episodes_skipped: skipped,
+        errors,
+    })
+}
+
+fn poisoned() -> SweepError {
+    field("writer", "poisoned lock", "a worker that did not panic")
+}
+
+/// Resolves relative policy paths against `base` (the spec file's directory).
+pub fn resolve_policies(spec: &mut SweepSpec, base: &Path) {
+    for p in &mut spec.policies {
+        let path = PathBuf::from(&*p);
+        if path.is_relative() && !path.exists() && base.join(&path).exists() {
+            *p = base.join(path).to_string_lossy().into_owned();
+        }
+    }
+}

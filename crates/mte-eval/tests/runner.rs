@@ -1,0 +1,288 @@
+//! The PushT runner with a scripted chunk policy: geometry, schedules, faults, pairing,
+//! the bracket guarantee end to end, and sweeps that resume.
+
+use std::collections::HashSet;
+use std::sync::Mutex;
+
+use mte_ensemble::Regime;
+use mte_eval::Silent;
+use mte_eval::corruption::{CorruptionSpec, Fault, OracleMode, Schedule};
+use mte_eval::pusht::{EpisodeSpec, Execution, ObsNeeds, run_episode};
+use mte_eval::record::{EpisodeRecord, Line};
+use mte_eval::store::{RunDir, read_lines};
+use mte_eval::sweep::{PolicySource, Shard, SweepSpec, run};
+use mte_policy::{ChunkPolicy, Observation, PolicyError};
+use mte_sim::ResetStream;
+use rand::{Rng, RngCore};
+
+/// Heads for the block's centre (mean of the keypoints) with a little sampling noise; a
+/// blanked observation (all keypoints zero) makes it predict `wild` instead. Records what
+/// every query saw.
+struct Scripted {
+    wild: f32,
+    seen: Mutex<Vec<(bool, u32)>>,
+}
+
+impl Scripted {
+    fn new(wild: f32) -> Self {
+        Self {
+            wild,
+            seen: Mutex::new(Vec::new()),
+        }
+    }
+}
+
+impl ChunkPolicy for Scripted {
+    fn horizon(&self) -> usize {
+        16
+    }
+    fn n_obs_steps(&self) -> usize {
+        2
+    }
+    fn action_dim(&self) -> usize {
+        2
+    }
+    fn predict_chunk(
+        &self,
+        history: &[Observation],
+        rng: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError> {
+        let kp = history[1].env_state.clone().unwrap_or_default();
+        let blank = kp.iter().all(|&v| v == 0.0);
+        let draw = rng.next_u32();
+        if let Ok(mut s) = self.seen.lock() {
+            s.push((blank, draw));
+        }
+        let (cx, cy) = if blank {
+            (self.wild, self.wild)
+        } else {
+            let n = kp.len() as f32 / 2.0;
+            let sx: f32 = kp.iter().step_by(2).sum();
+            let sy: f32 = kp.iter().skip(1).step_by(2).sum();
+            (sx / n, sy / n)
+        };
+        let mut out = Vec::with_capacity(32);
+        for _ in 0..16 {
+            out.push(cx + rng.random_range(-3.0..3.0));
+            out.push(cy + rng.random_range(-3.0..3.0));
+        }
+        Ok(out)
+    }
+}
+
+const NEEDS: ObsNeeds = ObsNeeds {
+    env_state: true,
+    image: None,
+};
+
+fn spec<'a>(execution: Execution, corruption: &'a CorruptionSpec, h: usize) -> EpisodeSpec<'a> {
+    EpisodeSpec {
+        needs: NEEDS,
+        seed: 100_000,
+        stream: ResetStream::Legacy,
+        h,
+        max_steps: 120,
+        execution,
+        corruption,
+        noise_seed: 7,
+    }
+}
+
+fn blank_burst(q: usize) -> CorruptionSpec {
+    CorruptionSpec {
+        fault: Fault::Blank,
+        schedule: Schedule::Burst {
+            q,
+            phase: 0,
+            period: None,
+        },
+    }
+}
+
+type TestResult = Result<(), Box<dyn std::error::Error>>;
+
+#[test]
+fn covering_counts_follow_the_geometry() -> TestResult {
+    let p = Scripted::new(0.0);
+    let r = run_episode(
+        &p,
+        &spec(
+            Execution::Ensemble("median".parse()?),
+            &CorruptionSpec::CLEAN,
+            2,
+        ),
+    )?;
+    assert_eq!(r.m_counts.iter().sum::<u64>(), r.steps as u64);
+    // T_p = 16, T_o = 2, h = 2: M grows by one per query (two steps each) up to 7, then
+    // alternates between 7 and 8 (the protocol's worked example).
+    assert_eq!(&r.m_counts[..7], &[0, 2, 2, 2, 2, 2, 2], "{:?}", r.m_counts);
+    assert_eq!(r.m_counts.len(), 9);
+    let (m7, m8) = (r.m_counts[7], r.m_counts[8]);
+    assert_eq!((m7 + m8) as usize, r.steps - 12);
+    assert!(m7.abs_diff(m8) <= 2, "{m7} vs {m8}");
+    assert_eq!(r.queries, r.steps.div_ceil(2));
+    assert_eq!(r.q_counts, vec![r.steps as u64]);
+    assert_eq!(r.bracket, None, "no diagnostics on clean cells");
+    Ok(())
+}
+
+#[test]
+fn blank_bursts_strike_exactly_the_scheduled_queries() -> TestResult {
+    let p = Scripted::new(0.0);
+    let c = blank_burst(3);
+    let r = run_episode(&p, &spec(Execution::OpenLoop, &c, 2))?;
+    let seen = p.seen.lock().map_err(|_| "poisoned")?.clone();
+    assert_eq!(seen.len(), r.queries);
+    for (i, (blank, _)) in seen.iter().enumerate() {
+        assert_eq!(*blank, i % 7 < 3, "query {i} (M_min = 7)");
+    }
+    assert_eq!(
+        r.corrupted_queries,
+        (0..r.queries).filter(|i| i % 7 < 3).count()
+    );
+    Ok(())
+}
+
+#[test]
+fn arms_share_seeds_noise_and_schedule() -> TestResult {
+    let c = blank_burst(2);
+    let draws = |arm: &str| -> Result<Vec<(bool, u32)>, Box<dyn std::error::Error>> {
+        let p = Scripted::new(0.0);
+        run_episode(&p, &spec(arm.parse()?, &c, 2))?;
+        let s = p.seen.lock().map_err(|_| "poisoned")?.clone();
+        Ok(s)
+    };
+    let (a, b) = (draws("ewm:0.01")?, draws("median")?);
+    // The first query sees the same reset and draws the same noise in both arms; the
+    // corruption pattern is the same at every query both arms made.
+    assert_eq!(a[0], b[0]);
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(x.0, y.0);
+    }
+    // Same arm twice: identical.
+    assert_eq!(draws("median")?, b);
+    Ok(())
+}
+
+#[test]
+fn the_median_stays_in_the_bracket_where_2q_lt_m_and_the_mean_does_not() -> TestResult {
+    let c = blank_burst(3);
+    let run = |arm: &str| -> Result<EpisodeRecord, Box<dyn std::error::Error>> {
+        Ok(run_episode(
+            &Scripted::new(5_000.0),
+            &spec(arm.parse()?, &c, 2),
+        )?)
+    };
+    let median = run("median")?;
+    let mean = run("mean")?;
+    let g = Regime::Guaranteed.index();
+    let (bm, be) = (
+        median.bracket.ok_or("median diagnostics")?,
+        mean.bracket.ok_or("mean diagnostics")?,
+    );
+    assert!(bm.tallies[g].steps > 0);
+    assert_eq!(bm.tallies[g].outside, 0, "the guarantee");
+    assert!(be.tallies[g].outside > 0, "the mean is dragged out");
+    // q(tau) is measured: bursts of 3 of every 7 queries reach q = 3 or 4 of 7-8.
+    assert!(median.q_counts.len() >= 4, "{:?}", median.q_counts);
+    Ok(())
+}
+
+#[test]
+fn oracle_attacks_stay_inside_the_bracket_and_need_an_ensembler() -> TestResult {
+    for mode in [OracleMode::Instant, OracleMode::Drift] {
+        let c = CorruptionSpec {
+            fault: Fault::Oracle { mode },
+            schedule: Schedule::Burst {
+                q: 3,
+                phase: 0,
+                period: None,
+            },
+        };
+        let r = run_episode(&Scripted::new(0.0), &spec("median".parse()?, &c, 2))?;
+        let b = r.bracket.ok_or("diagnostics")?;
+        let steps: u64 = b.tallies.iter().map(|t| t.steps).sum();
+        assert!(steps > 0);
+        assert_eq!(b.tallies.iter().map(|t| t.outside).sum::<u64>(), 0);
+        assert!(run_episode(&Scripted::new(0.0), &spec(Execution::OpenLoop, &c, 2)).is_err());
+    }
+    Ok(())
+}
+
+#[test]
+fn bad_stride_is_a_typed_error() {
+    let e = run_episode(
+        &Scripted::new(0.0),
+        &spec(Execution::OpenLoop, &CorruptionSpec::CLEAN, 16),
+    );
+    assert!(e.is_err_and(|e| e.to_string().contains("`h` = 16")));
+}
+
+struct Source;
+
+impl PolicySource for Source {
+    fn load(&self, path: &str) -> Result<(Box<dyn ChunkPolicy + Send + Sync>, ObsNeeds), String> {
+        if path == "missing" {
+            return Err("no such policy: missing".into());
+        }
+        Ok((Box::new(Scripted::new(5_000.0)), NEEDS))
+    }
+}
+
+const SPEC: &str = r#"
+name = "t"
+policies = ["scripted", "missing"]
+arms = ["ewm:0.01", "median"]
+h = [2]
+seeds = { first = 100000, count = 2 }
+max_steps = 40
+
+[[corruptions]]
+fault = { kind = "blank" }
+q = [0, 2]
+"#;
+
+#[test]
+fn sweeps_record_every_episode_resume_and_shard() -> TestResult {
+    let spec = SweepSpec::from_toml(SPEC)?;
+    let cells = spec.cells();
+    assert_eq!(cells.len(), 4);
+    let manifest = spec.manifest(None, 0);
+    let dir = tempfile::tempdir()?;
+    let root = dir.path().join("run");
+    let rd = RunDir::create(&root, &spec.to_toml()?, &manifest, false)?;
+    let s0 = run(&spec, &manifest, &rd, "0/2".parse()?, 2, &Source, &Silent)?;
+    let s1 = run(&spec, &manifest, &rd, "1/2".parse()?, 1, &Source, &Silent)?;
+    assert_eq!(s0.cells + s1.cells, 4);
+    assert_eq!(
+        s0.episodes_run + s1.episodes_run,
+        8,
+        "2 cells x 2 seeds x 2 arms"
+    );
+    assert_eq!(s0.errors + s1.errors, 8, "the missing policy's cells");
+    let ok_cell = &cells[1];
+    let lines = read_lines(&rd.cell_path(&ok_cell.id))?;
+    let keys: HashSet<(String, u64)> = lines
+        .iter()
+        .filter_map(|l| match l {
+            Line::Episode(e) => Some((e.arm.clone(), e.seed)),
+            Line::Error(_) => None,
+        })
+        .collect();
+    assert_eq!(keys.len(), 4);
+    // Resume: nothing new to run in the good cells.
+    let rd = RunDir::create(&root, "", &manifest, true)?;
+    let again = run(&spec, &manifest, &rd, Shard::default(), 2, &Source, &Silent)?;
+    assert_eq!(again.episodes_run, 0);
+    assert_eq!(again.episodes_skipped, 8);
+    // Drop the last finished episode: resume runs exactly that one.
+    let path = rd.cell_path(&ok_cell.id);
+    let text = std::fs::read_to_string(&path)?;
+    let kept: Vec<&str> = text.lines().collect();
+    std::fs::write(&path, format!("{}\n", kept[..kept.len() - 1].join("\n")))?;
+    let again = run(&spec, &manifest, &rd, Shard::default(), 2, &Source, &Silent)?;
+    assert_eq!(again.episodes_run, 1);
+    assert!("2/2".parse::<Shard>().is_err());
+    assert!(SweepSpec::from_toml(&SPEC.replace("median", "medain")).is_err());
+    Ok(())
+}

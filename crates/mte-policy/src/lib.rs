@@ -1,6 +1,7 @@
 //! Chunked visuomotor policies on candle: LeRobot-compatible Diffusion Policy.
 #![forbid(unsafe_code)]
 
+pub mod attack;
 pub mod checkpoint;
 pub mod config;
 pub mod error;
@@ -12,6 +13,7 @@ pub mod train;
 pub mod unet;
 pub mod vision;
 
+pub use attack::{PgdConfig, PgdOutcome};
 pub use config::{DiffusionConfig, ObsKind};
 pub use error::PolicyError;
 pub use model::{ChunkPolicy, DiffusionPolicy, ObsBatch, ObsGradient, Observation, StatsMap};

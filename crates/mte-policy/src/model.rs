@@ -515,6 +515,21 @@ pub trait ChunkPolicy {
         history: &[Observation],
         rng: &mut dyn RngCore,
     ) -> Result<Vec<f32>, PolicyError>;
+    /// The chunk predicted from the observation after a PGD attack on the policy's own
+    /// loss ([`crate::attack`]): `attack_rng` drives the attack, `sample_rng` the sampling.
+    /// Policies without an observation gradient refuse.
+    fn predict_chunk_attacked(
+        &self,
+        _history: &[Observation],
+        _pgd: &crate::attack::PgdConfig,
+        _attack_rng: &mut dyn RngCore,
+        _sample_rng: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError> {
+        Err(PolicyError::Input {
+            name: "policy",
+            reason: "this policy offers no observation gradient, so PGD cannot attack it".into(),
+        })
+    }
 }
 
 impl ChunkPolicy for DiffusionPolicy {
@@ -533,5 +548,14 @@ impl ChunkPolicy for DiffusionPolicy {
         rng: &mut dyn RngCore,
     ) -> Result<Vec<f32>, PolicyError> {
         self.predict(history, rng)
+    }
+    fn predict_chunk_attacked(
+        &self,
+        history: &[Observation],
+        pgd: &crate::attack::PgdConfig,
+        attack_rng: &mut dyn RngCore,
+        sample_rng: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError> {
+        Ok(self.pgd_attack(history, pgd, attack_rng, sample_rng)?.chunk)
     }
 }

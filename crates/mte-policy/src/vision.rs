@@ -153,10 +153,7 @@ impl RgbEncoder {
         let h = self.bn1.forward(&self.conv1.forward(x)?)?.relu()?;
         // Max pool 3x3, stride 2, padding 1: after ReLU every value is >= 0, so zero padding
         // is equivalent to torch's -inf padding.
-        let mut h = h
-            .pad_with_zeros(2, 1, 1)?
-            .pad_with_zeros(3, 1, 1)?
-            .max_pool2d_with_stride(3, 2)?;
+        let mut h = max_pool_3x3_s2(&h.pad_with_zeros(2, 1, 1)?.pad_with_zeros(3, 1, 1)?)?;
         let mut out = vec![h.clone()];
         for layer in &self.layers {
             for block in layer {
@@ -177,7 +174,9 @@ impl RgbEncoder {
             .ok_or_else(|| candle_core::Error::Msg("backbone produced no stage".into()))?;
         let f = self.keypoints.forward(&h)?;
         let (b, k, fh, fw) = f.dims4()?;
-        let att = candle_nn::ops::softmax_last_dim(&f.reshape((b * k, fh * fw))?)?;
+        // The composed softmax, not candle's fused `softmax_last_dim`: the fused kernel has
+        // no backward pass, which would cut the observation gradient (PGD) at this point.
+        let att = candle_nn::ops::softmax(&f.reshape((b * k, fh * fw))?, candle_core::D::Minus1)?;
         let grid = pos_grid(fh, fw, x.device())?.to_dtype(f.dtype())?;
         let keypoints = att.matmul(&grid)?.reshape((b, k, 2))?;
         let feature = self.out.forward(&keypoints.reshape((b, k * 2))?)?.relu()?;
@@ -218,4 +217,62 @@ pub fn pos_grid(h: usize, w: usize, device: &candle_core::Device) -> Result<Tens
         }
     }
     Tensor::from_vec(v, (h * w, 2), device)
+}
+
+/// Max pool 3x3 with stride 2 on an already padded `(B, C, H, W)` batch, as the maximum of
+/// nine strided views. Same values as `max_pool2d_with_stride(3, 2)`, but differentiable:
+/// candle's max-pool backward only supports kernel = stride, so the observation gradient
+/// (PGD) and the stem's weight gradients would not flow through it.
+pub fn max_pool_3x3_s2(x: &Tensor) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    let (oh, ow) = ((h - 3) / 2 + 1, (w - 3) / 2 + 1);
+    // One spare zero row and column so every offset's strided view fits; the spare cells
+    // are only ever read as the discarded half of a pair.
+    let x = x.pad_with_zeros(2, 0, 1)?.pad_with_zeros(3, 0, 1)?;
+    let mut out: Option<Tensor> = None;
+    for dy in 0..3 {
+        let rows = x
+            .narrow(2, dy, 2 * oh)?
+            .reshape((b, c, oh, 2, w + 1))?
+            .narrow(3, 0, 1)?
+            .squeeze(3)?;
+        for dx in 0..3 {
+            let v = rows
+                .narrow(3, dx, 2 * ow)?
+                .reshape((b, c, oh, ow, 2))?
+                .narrow(4, 0, 1)?
+                .squeeze(4)?;
+            out = Some(match out {
+                None => v,
+                Some(m) => m.maximum(&v)?,
+            });
+        }
+    }
+    out.ok_or_else(|| candle_core::Error::Msg("empty max pool".into()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::{Device, Var};
+
+    #[test]
+    fn strided_max_pool_equals_candles_and_has_a_gradient() -> Result<()> {
+        for (h, w) in [(44, 44), (43, 45), (10, 7)] {
+            let x = Tensor::randn(0f32, 1.0, (2, 3, h, w), &Device::Cpu)?;
+            let ours: Vec<f32> = max_pool_3x3_s2(&x)?.flatten_all()?.to_vec1()?;
+            let theirs: Vec<f32> = x.max_pool2d_with_stride(3, 2)?.flatten_all()?.to_vec1()?;
+            assert_eq!(ours, theirs, "{h}x{w}");
+        }
+        let v = Var::from_tensor(&Tensor::randn(0f32, 1.0, (1, 1, 9, 9), &Device::Cpu)?)?;
+        let g = max_pool_3x3_s2(v.as_tensor())?.sum_all()?.backward()?;
+        let gv: Vec<f32> = g
+            .get(v.as_tensor())
+            .ok_or_else(|| candle_core::Error::Msg("no gradient".into()))?
+            .flatten_all()?
+            .to_vec1()?;
+        // Each of the 16 windows routes its unit gradient to its maximum.
+        assert!((gv.iter().sum::<f32>() - 16.0).abs() < 1e-5);
+        Ok(())
+    }
 }

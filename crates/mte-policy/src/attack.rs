@@ -1,0 +1,228 @@
+//! Projected gradient descent (ascent) on the policy's own training loss: the paper's
+//! observation attack (protocol section 4).
+//!
+//! At an attacked query the attacker first samples the chunk the policy predicts from the
+//! *clean* observation and uses it as `x_0`; each iteration then draws diffusion timesteps
+//! and noise, takes the gradient of the noise-prediction MSE with respect to the
+//! observation, and steps `alpha * sign(grad)` uphill, projecting onto the L-infinity ball
+//! of radius `eps` around the clean observation (and, for images, onto `[0, 1]`). The chunk
+//! the runner executes is then sampled from the perturbed observation. Following the DP-
+//! Attacker online attack, as the protocol chooses.
+//!
+//! What is perturbed: images in `[0, 1]` pixel units for image policies; for state policies
+//! the *normalised* environment state (the block keypoints), in normalised units. The
+//! agent's own position is proprioception and is left alone, as for the sensor faults.
+
+use candle_core::{D, DType, Tensor};
+use rand::{Rng, RngCore};
+use rand_distr::{Distribution, StandardNormal};
+
+use crate::error::PolicyError;
+use crate::model::{DiffusionPolicy, ObsBatch, Observation};
+
+/// PGD settings. Defaults: the paper's (eps 0.03, step 0.001875, 200 iterations).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PgdConfig {
+    /// L-infinity radius (pixel units in [0, 1], or normalised state units).
+    pub eps: f64,
+    /// Step size per iteration.
+    pub step: f64,
+    /// Iterations (the attack budget).
+    pub iterations: usize,
+    /// Start from a uniform point in the ball instead of the clean observation.
+    pub random_start: bool,
+    /// Diffusion timesteps (with their noise) averaged per iteration.
+    pub samples: usize,
+}
+
+impl Default for PgdConfig {
+    fn default() -> Self {
+        Self {
+            eps: 0.03,
+            step: 0.001_875,
+            iterations: 200,
+            random_start: false,
+            samples: 4,
+        }
+    }
+}
+
+impl PgdConfig {
+    /// Checks ranges.
+    pub fn validate(&self) -> Result<(), PolicyError> {
+        let bad = |name: &'static str, v: String, e: &str| PolicyError::Config {
+            field: name,
+            value: v,
+            expected: e.to_string(),
+        };
+        if !(self.eps.is_finite() && self.eps >= 0.0) {
+            return Err(bad("pgd.eps", self.eps.to_string(), "a finite value >= 0"));
+        }
+        if !(self.step.is_finite() && self.step > 0.0) {
+            return Err(bad("pgd.step", self.step.to_string(), "a finite value > 0"));
+        }
+        if self.samples == 0 {
+            return Err(bad("pgd.samples", "0".into(), "at least 1"));
+        }
+        Ok(())
+    }
+}
+
+/// What one attack did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PgdOutcome {
+    /// The chunk sampled from the perturbed observation (unnormalised, `horizon x d`).
+    pub chunk: Vec<f32>,
+    /// Loss at the clean observation (first iteration) and at the last iteration.
+    pub loss_first: f32,
+    /// Loss at the last iteration.
+    pub loss_last: f32,
+    /// Largest absolute perturbation applied (same units as `eps`).
+    pub max_perturbation: f32,
+}
+
+impl DiffusionPolicy {
+    /// The perturbed observation batch of [`DiffusionPolicy::pgd_attack`], before sampling.
+    /// `attack_rng` draws the random start, timesteps and noise.
+    pub fn pgd_perturb(
+        &self,
+        history: &[Observation],
+        x0: &Tensor,
+        cfg: &PgdConfig,
+        attack_rng: &mut dyn RngCore,
+    ) -> Result<(ObsBatch, f32, f32), PolicyError> {
+        cfg.validate()?;
+        let clean = self.obs_batch(&[history])?;
+        let (target, is_image) = match (&clean.image, &clean.env) {
+            (Some(img), _) => (img.clone(), true),
+            (None, Some(env)) => (env.clone(), false),
+            (None, None) => {
+                return Err(PolicyError::Input {
+                    name: "observation",
+                    reason: "PGD needs an image or an environment state to perturb".into(),
+                });
+            }
+        };
+        let eps = cfg.eps as f32;
+        let dtype = target.dtype();
+        let mut x: Vec<f32> = target.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+        let base = x.clone();
+        if cfg.random_start {
+            for v in &mut x {
+                *v += attack_rng.random_range(-eps..=eps);
+            }
+        }
+        let project = |x: &mut [f32]| {
+            for (v, &b) in x.iter_mut().zip(&base) {
+                *v = v.clamp(b - eps, b + eps);
+                if is_image {
+                    *v = v.clamp(0.0, 1.0);
+                }
+            }
+        };
+        project(&mut x);
+        let shape = target.shape().clone();
+        let (tp, d) = (self.config().horizon, self.action_normalizer().dim());
+        let n = cfg.samples;
+        let n_train = self.config().num_train_timesteps;
+        let (mut first, mut last) = (f32::NAN, f32::NAN);
+        for it in 0..cfg.iterations {
+            let xt = Tensor::from_vec(x.clone(), shape.clone(), self.device())?.to_dtype(dtype)?;
+            let batch = ObsBatch {
+                state: clean.state.clone(),
+                env: if is_image {
+                    clean.env.clone()
+                } else {
+                    Some(xt.clone())
+                },
+                image: if is_image { Some(xt) } else { None },
+            };
+            let timesteps: Vec<usize> = (0..n)
+                .map(|_| attack_rng.random_range(0..n_train))
+                .collect();
+            let noise: Vec<f32> = (0..n * tp * d)
+                .map(|_| StandardNormal.sample(attack_rng))
+                .collect();
+            let noise = Tensor::from_vec(noise, (n, tp, d), self.device())?.to_dtype(dtype)?;
+            let (loss, g) = self.observation_gradient(&batch, x0, &noise, &timesteps)?;
+            if it == 0 {
+                first = loss;
+            }
+            last = loss;
+            let grad = if is_image { g.image } else { g.env };
+            let grad: Vec<f32> = match grad {
+                Some(t) => t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?,
+                None => vec![0.0; x.len()],
+            };
+            let step = cfg.step as f32;
+            for (v, gv) in x.iter_mut().zip(&grad) {
+                // sign(0) = 0: a coordinate without gradient does not move.
+                if *gv > 0.0 {
+                    *v += step;
+                } else if *gv < 0.0 {
+                    *v -= step;
+                }
+            }
+            project(&mut x);
+        }
+        let xt = Tensor::from_vec(x, shape, self.device())?.to_dtype(dtype)?;
+        let batch = ObsBatch {
+            state: clean.state.clone(),
+            env: if is_image {
+                clean.env.clone()
+            } else {
+                Some(xt.clone())
+            },
+            image: if is_image { Some(xt) } else { None },
+        };
+        Ok((batch, first, last))
+    }
+
+    /// Attack one query: sample the clean chunk as `x_0` (with `sample_rng`), run PGD
+    /// (`attack_rng`), and sample the executed chunk from the perturbed observation (with
+    /// `sample_rng` again).
+    pub fn pgd_attack(
+        &self,
+        history: &[Observation],
+        cfg: &PgdConfig,
+        attack_rng: &mut dyn RngCore,
+        sample_rng: &mut dyn RngCore,
+    ) -> Result<PgdOutcome, PolicyError> {
+        let clean = self.obs_batch(&[history])?;
+        let x0 = self.sample_batch(&clean, sample_rng)?;
+        let (adv, loss_first, loss_last) = self.pgd_perturb(history, &x0, cfg, attack_rng)?;
+        let max_perturbation = match (&adv.image, &clean.image, &adv.env, &clean.env) {
+            (Some(a), Some(c), _, _) | (None, None, Some(a), Some(c)) => (a - c)?
+                .abs()?
+                .flatten_all()?
+                .max(D::Minus1)?
+                .to_dtype(DType::F32)?
+                .to_scalar::<f32>()?,
+            _ => 0.0,
+        };
+        let x = self.sample_batch(&adv, sample_rng)?;
+        let mut chunk: Vec<f32> = x.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+        self.action_normalizer().unnormalize(&mut chunk);
+        if chunk.iter().any(|v| !v.is_finite()) {
+            return Err(PolicyError::Input {
+                name: "action",
+                reason: "sampling produced a non-finite action".into(),
+            });
+        }
+        Ok(PgdOutcome {
+            chunk,
+            loss_first,
+            loss_last,
+            max_perturbation,
+        })
+    }
+
+    /// One normalised chunk `(1, horizon, d)` sampled from an observation batch.
+    fn sample_batch(&self, obs: &ObsBatch, rng: &mut dyn RngCore) -> Result<Tensor, PolicyError> {
+        let cond = self.global_cond(obs)?;
+        let (tp, d) = (self.config().horizon, self.action_normalizer().dim());
+        let init: Vec<f32> = (0..tp * d).map(|_| StandardNormal.sample(rng)).collect();
+        let noise = Tensor::from_vec(init, (1, tp, d), self.device())?.to_dtype(cond.dtype())?;
+        self.sample_normalized(&cond, noise, rng)
+    }
+}

@@ -17,7 +17,6 @@ fn stats(image: bool) -> StatsMap {
         max: vec![hi; n],
         mean: vec![0.5; n],
         std: vec![0.25; n],
-        ..Default::default()
     };
     let mut s = StatsMap::new();
     s.insert("observation.state".into(), mm(0.0, 512.0, 2));

@@ -43,8 +43,15 @@ pub enum Format {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
-    /// Synthetic stress test: what corrupted queries do to each aggregator (no simulator).
+    /// The PushT experiment with the bundled policy: blank-frame bursts, exp-weighted mean
+    /// vs median, paired episodes, a report (a few minutes on 2 cores).
     Demo(DemoArgs),
+    /// Run a sweep spec (TOML grid of policy x corruption x q x h) into a run directory.
+    Sweep(SweepArgs),
+    /// Tables, paired tests and plots from one or more run directories.
+    Report(ReportArgs),
+    /// Synthetic stress test: what corrupted queries do to each aggregator (no simulator).
+    Synthetic(SyntheticArgs),
     /// Work with recorded chunk streams.
     #[command(subcommand)]
     Ensemble(EnsembleCommand),
@@ -304,9 +311,9 @@ pub enum EnsembleCommand {
     Replay(ReplayArgs),
 }
 
-/// `mte demo`
+/// `mte synthetic`
 #[derive(Debug, Args)]
-pub struct DemoArgs {
+pub struct SyntheticArgs {
     /// Episodes per burst length q.
     #[arg(long, default_value_t = 20)]
     pub episodes: usize,
@@ -367,4 +374,73 @@ pub struct ReplayArgs {
     /// temporary file and renamed, so a failed run leaves no partial file.
     #[arg(long, short, value_name = "FILE")]
     pub out: Option<PathBuf>,
+}
+
+/// `mte demo`
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    /// Paired episodes per cell (seeds 100000, 100001, ...: Diffusion Policy's test seeds).
+    #[arg(long, default_value_t = 20)]
+    pub episodes: usize,
+    /// Policy checkpoint directory (default: the bundled keypoint policy).
+    #[arg(long, value_name = "DIR")]
+    pub policy: Option<PathBuf>,
+    /// Arms compared on the same episodes (comma-separated; the first is the baseline).
+    #[arg(long, value_delimiter = ',', default_value = "ewm:0.01,median")]
+    pub aggregators: Vec<String>,
+    /// Corruption at struck queries, as TOML inline table fields, e.g. `kind = "blank"`,
+    /// `kind = "occluder", size = 24`, `kind = "gaussian-noise", sigma = 20.0`.
+    #[arg(long, default_value = r#"kind = "blank""#)]
+    pub fault: String,
+    /// Burst lengths q (corrupted queries per period of M_min); 0 is the clean cell.
+    #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
+    pub q: Vec<usize>,
+    /// Query stride h.
+    #[arg(long, default_value_t = 2)]
+    pub stride: usize,
+    /// Parallel episodes (default: all cores).
+    #[arg(long)]
+    pub workers: Option<usize>,
+    /// Run directory; an existing run of the same grid is resumed.
+    #[arg(long, short, value_name = "DIR", default_value = "runs/demo")]
+    pub out: PathBuf,
+}
+
+/// `mte sweep`
+#[derive(Debug, Args)]
+pub struct SweepArgs {
+    /// Sweep spec (TOML; see `mte_eval::sweep`).
+    pub spec: PathBuf,
+    /// Run directory.
+    #[arg(long, short, value_name = "DIR")]
+    pub out: PathBuf,
+    /// Continue a run in `--out`: finished episodes are skipped.
+    #[arg(long)]
+    pub resume: bool,
+    /// Run only shard `i/n` of the cells (e.g. a Slurm array index); shards may share `--out`.
+    #[arg(long, default_value = "0/1")]
+    pub shard: String,
+    /// Parallel episodes (default: all cores).
+    #[arg(long)]
+    pub workers: Option<usize>,
+}
+
+/// `mte report`
+#[derive(Debug, Args)]
+pub struct ReportArgs {
+    /// Run directories (shards of one grid are merged).
+    #[arg(required = true)]
+    pub runs: Vec<PathBuf>,
+    /// Where to write report.md, report.html and plots/ (default: the first run directory).
+    #[arg(long, short, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Baseline arm of the paired tests (default: the first `ewm` arm).
+    #[arg(long)]
+    pub baseline: Option<String>,
+    /// Robust arm (default: `median`).
+    #[arg(long)]
+    pub robust: Option<String>,
+    /// Cell of the aggregator table (default: the corrupted cell with most arms).
+    #[arg(long)]
+    pub cell: Option<String>,
 }

@@ -19,6 +19,9 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match &cli.command {
         Command::Demo(a) => cmd::demo::run(&cli, a),
+        Command::Sweep(a) => cmd::sweep::run(&cli, a),
+        Command::Report(a) => cmd::report::run(&cli, a),
+        Command::Synthetic(a) => cmd::synthetic::run(&cli, a),
         Command::Ensemble(EnsembleCommand::Replay(a)) => cmd::replay::run(&cli, a),
         Command::Sim(SimCommand::Render(a)) => cmd::sim::render(&cli, a),
         Command::Sim(SimCommand::Rollout(a)) => cmd::sim::rollout(&cli, a),

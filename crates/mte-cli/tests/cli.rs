@@ -13,10 +13,10 @@ fn mte() -> Command {
 }
 
 #[test]
-fn demo_json_shows_the_median_beating_the_mean_under_bursts() {
+fn synthetic_json_shows_the_median_beating_the_mean_under_bursts() {
     let out = mte()
         .args([
-            "demo",
+            "synthetic",
             "--episodes",
             "4",
             "--steps",
@@ -47,9 +47,17 @@ fn demo_json_shows_the_median_beating_the_mean_under_bursts() {
 }
 
 #[test]
-fn demo_text_prints_the_tables() {
+fn synthetic_text_prints_the_tables() {
     mte()
-        .args(["demo", "--episodes", "2", "--steps", "60", "--q", "0,3"])
+        .args([
+            "synthetic",
+            "--episodes",
+            "2",
+            "--steps",
+            "60",
+            "--q",
+            "0,3",
+        ])
         .assert()
         .success()
         .stdout(predicate::str::contains("| q | ewm:0.01 | median |"))
@@ -59,16 +67,20 @@ fn demo_text_prints_the_tables() {
 
 #[test]
 fn bad_flags_exit_2_naming_the_value() {
-    mte().args(["demo", "--q", "9"]).assert().code(2).stderr(
-        predicate::str::contains("q_values = 9").and(predicate::str::contains("M_min = 7")),
-    );
     mte()
-        .args(["demo", "--aggregators", "medain"])
+        .args(["synthetic", "--q", "9"])
+        .assert()
+        .code(2)
+        .stderr(
+            predicate::str::contains("q_values = 9").and(predicate::str::contains("M_min = 7")),
+        );
+    mte()
+        .args(["synthetic", "--aggregators", "medain"])
         .assert()
         .code(2)
         .stderr(predicate::str::contains("unknown aggregator \"medain\""));
     mte()
-        .args(["demo", "--t-o", "0"])
+        .args(["synthetic", "--t-o", "0"])
         .assert()
         .code(2)
         .stderr(predicate::str::contains("t_o = 0"));
@@ -271,4 +283,108 @@ fn bad_sim_flags_are_clear_errors() {
         .assert()
         .code(2)
         .stderr(predicate::str::contains("--episodes"));
+}
+
+/// The bundled policy, from the repository root.
+fn bundled() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../assets/policies/pusht_keypoints_cpu")
+}
+
+#[test]
+fn demo_runs_pairs_resumes_and_reports() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let run = || {
+        mte()
+            .args([
+                "demo",
+                "--episodes",
+                "1",
+                "--q",
+                "0,3",
+                "--workers",
+                "2",
+                "--out",
+            ])
+            .arg(&out)
+            .arg("--policy")
+            .arg(bundled())
+            .assert()
+            .success()
+    };
+    let first = String::from_utf8(run().get_output().stdout.clone()).unwrap();
+    assert!(
+        first.contains("2 cells: 4 episodes run, 0 already done, 0 errors"),
+        "{first}"
+    );
+    assert!(first.contains("Main table"), "{first}");
+    assert!(first.contains("blank-burst-q3"), "{first}");
+    for f in ["report.md", "report.html", "manifest.json", "spec.toml"] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+    let cells: Vec<_> = fs::read_dir(out.join("cells")).unwrap().collect();
+    assert_eq!(cells.len(), 2);
+    // Every line is one finished (arm, seed).
+    let lines: usize = cells
+        .iter()
+        .map(|c| {
+            fs::read_to_string(c.as_ref().unwrap().path())
+                .unwrap()
+                .lines()
+                .count()
+        })
+        .sum();
+    assert_eq!(lines, 4);
+    let again = String::from_utf8(run().get_output().stdout.clone()).unwrap();
+    assert!(again.contains("0 episodes run, 4 already done"), "{again}");
+    // The report alone, from the files, as JSON.
+    let json = mte()
+        .args(["report", "--format", "json"])
+        .arg(&out)
+        .assert()
+        .success();
+    let v: serde_json::Value = serde_json::from_slice(&json.get_output().stdout).unwrap();
+    assert!(v["markdown"].as_str().unwrap().contains("median"));
+    // A different grid in the same directory is refused, naming the way out.
+    mte()
+        .args(["demo", "--episodes", "2", "--q", "0,3", "--out"])
+        .arg(&out)
+        .arg("--policy")
+        .arg(bundled())
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("another --out"));
+}
+
+#[test]
+fn sweep_flags_and_specs_are_checked() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = dir.path().join("s.toml");
+    fs::write(
+        &spec,
+        "name = \"x\"\npolicies = [\"p\"]\narms = [\"medain\"]\nh = [2]\nseeds = [1]\n\
+         [[corruptions]]\nfault = { kind = \"blank\" }\nq = [1]\n",
+    )
+    .unwrap();
+    mte()
+        .arg("sweep")
+        .arg(&spec)
+        .arg("--out")
+        .arg(dir.path().join("r"))
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("`arms` = medain"));
+    mte()
+        .args(["sweep", "--shard", "3/2", "--out"])
+        .arg(dir.path().join("r"))
+        .arg(&spec)
+        .assert()
+        .code(2);
+    mte()
+        .args(["report"])
+        .arg(dir.path())
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("not an mte run directory"));
 }

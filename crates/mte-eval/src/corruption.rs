@@ -155,6 +155,10 @@ pub enum Fault {
         /// Direction, degrees counter-clockwise from +x.
         angle_deg: f64,
     },
+    /// PGD on the policy's own training loss at corrupted queries (`mte_policy::attack`):
+    /// L-infinity `eps` (pixels in `[0, 1]`, or normalised keypoints), sign steps, a budget
+    /// of `iterations`. The attacker is the same whichever arm is deployed.
+    Pgd(mte_policy::PgdConfig),
     /// Oracle attack confined to the clean bracket: corrupted candidates take the bracket
     /// end that moves the coordinate-wise median farthest.
     Oracle {
@@ -184,6 +188,7 @@ impl Fault {
             Self::MotionBlur { length } => Some(length as f64),
             Self::GaussianNoise { sigma } => Some(sigma),
             Self::CommonMode { magnitude, .. } => Some(magnitude),
+            Self::Pgd(ref c) => Some(c.iterations as f64),
             _ => None,
         }
     }
@@ -208,6 +213,9 @@ impl Fault {
                 format!("{magnitude}/{angle_deg}"),
                 "finite numbers",
             )),
+            Self::Pgd(ref c) => c
+                .validate()
+                .map_err(|e| CorruptionError::new("fault (pgd)", c.iterations, e.to_string())),
             _ => Ok(()),
         }
     }
@@ -227,6 +235,7 @@ impl fmt::Display for Fault {
                 magnitude,
                 angle_deg,
             } => write!(f, "common-{magnitude}@{angle_deg}"),
+            Self::Pgd(c) => write!(f, "pgd-{}", c.iterations),
             Self::Oracle { mode } => match mode {
                 OracleMode::Instant => f.write_str("oracle-inst"),
                 OracleMode::Drift => f.write_str("oracle-drift"),
@@ -440,7 +449,7 @@ impl ObservationCorruptor {
                     }
                 }
             }
-            Fault::None | Fault::CommonMode { .. } | Fault::Oracle { .. } => {}
+            Fault::None | Fault::CommonMode { .. } | Fault::Oracle { .. } | Fault::Pgd(_) => {}
         }
         win
     }

@@ -18,6 +18,7 @@ pub mod corruption;
 pub mod pusht;
 pub mod record;
 pub mod replay;
+pub mod report;
 pub mod store;
 pub mod sweep;
 pub mod synthetic;

@@ -371,8 +371,18 @@ pub fn run_episode(
             times.corruption_s += t.elapsed().as_secs_f64();
             let t = Instant::now();
             let mut srng = query_rng(spec.noise_seed, spec.seed, i, 0);
-            chunk = policy.predict_chunk(&window, &mut srng)?;
-            times.policy_s += t.elapsed().as_secs_f64();
+            chunk = match fault {
+                Fault::Pgd(cfg) if corrupted => {
+                    let c = policy.predict_chunk_attacked(&window, cfg, &mut crng, &mut srng)?;
+                    times.corruption_s += t.elapsed().as_secs_f64();
+                    c
+                }
+                _ => {
+                    let c = policy.predict_chunk(&window, &mut srng)?;
+                    times.policy_s += t.elapsed().as_secs_f64();
+                    c
+                }
+            };
             queries += 1;
             corrupted_queries += usize::from(corrupted);
             newest_corrupted = corrupted;

@@ -22,6 +22,7 @@ use crate::model::{DiffusionPolicy, ObsBatch, Observation};
 
 /// PGD settings. Defaults: the paper's (eps 0.03, step 0.001875, 200 iterations).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct PgdConfig {
     /// L-infinity radius (pixel units in [0, 1], or normalised state units).
     pub eps: f64,

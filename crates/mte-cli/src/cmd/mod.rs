@@ -5,5 +5,8 @@ pub mod demo;
 pub mod eval;
 pub mod media;
 pub mod replay;
+pub mod report;
 pub mod sim;
+pub mod sweep;
+pub mod synthetic;
 pub mod train;

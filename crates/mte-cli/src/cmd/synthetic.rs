@@ -1,4 +1,4 @@
-//! `mte demo`: the synthetic stress test, printed as tables.
+//! `mte synthetic`: the synthetic stress test, printed as tables.
 
 use std::fmt::Write as _;
 use std::io::Write as _;
@@ -7,11 +7,11 @@ use anyhow::{Context, Result};
 use mte_ensemble::ChunkGeometry;
 use mte_eval::synthetic::{self, SyntheticConfig, SyntheticReport};
 
-use crate::args::{Cli, DemoArgs, Format};
+use crate::args::{Cli, Format, SyntheticArgs};
 use crate::progress::Bar;
 
-/// Runs the demo.
-pub fn run(cli: &Cli, args: &DemoArgs) -> Result<()> {
+/// Runs the synthetic stress test.
+pub fn run(cli: &Cli, args: &SyntheticArgs) -> Result<()> {
     let cfg = SyntheticConfig {
         geometry: ChunkGeometry {
             t_p: args.t_p,
@@ -28,7 +28,7 @@ pub fn run(cli: &Cli, args: &DemoArgs) -> Result<()> {
         seed: args.seed,
     };
     cfg.validate()
-        .context("check the demo flags (--t-p, --t-o, --stride, --q, ...)")?;
+        .context("check the flags (--t-p, --t-o, --stride, --q, ...)")?;
     let bar = Bar::new(!cli.no_progress && !cli.quiet);
     let report = synthetic::run(&cfg, &bar)?;
     if let Some(path) = &args.out {
@@ -58,7 +58,7 @@ pub fn render(r: &SyntheticReport, verbose: bool) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "mte demo: synthetic stress test (no simulator)\n\
+        "mte synthetic: synthetic stress test (no simulator)\n\
          T_p={} T_o={} h={} (M = {}..{}), d={}, {} episodes x {} steps per q, clean noise {} \
          (std), corrupted chunks displaced by {}, seed {}\n",
         g.t_p,

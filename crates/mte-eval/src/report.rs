@@ -1,0 +1,2547 @@
+//! The report of an evaluation run: paired tables, bracket diagnostics and plots, computed
+//! from a run directory's files alone (protocol sections 3, 6 and 7).
+//!
+//! [`build`] takes the [`Manifest`] and every [`Line`] of the cell files and computes
+//!
+//! 1. the **main table**: one row per corrupted cell, the robust arm against the baseline
+//!    arm on the seeds both ran (mean max coverage, paired difference, Wilcoxon signed-rank
+//!    test on coverage, exact McNemar test on success, Holm over the rows), next to the
+//!    baseline arm on the clean cell of the same policy and stride;
+//! 2. the **aggregator table** of one cell: every arm against the baseline (Holm over arms);
+//! 3. the **bracket table** by regime per arm, over the corrupted cells;
+//! 4. the **recovered fraction** `(robust - baseline) / (clean - baseline)` per corrupted
+//!    cell ("n/a" where undefined);
+//! 5. the measured distributions of `M(tau)` and `q(tau)`;
+//! 6. the runner's **overhead** per stage;
+//! 7. the **failures** recorded by the sweep;
+//! 8. **plots**: mean max coverage and success rate against `q` per (policy, fault,
+//!    schedule kind, `h`), and the recovered fraction against the attack budget (or `q`).
+//!
+//! [`Report::markdown`] and [`Report::html`] render the same blocks (the HTML is
+//! self-contained, with the plots inlined as SVG); [`Report::write`] writes both and every
+//! plot as SVG and PNG. Output is deterministic: cells in manifest order, arms in the
+//! cells' order, seeds in the cells' seed order, fixed decimals.
+//!
+//! Pairing: an arm is compared with the baseline on the seeds present for both in the same
+//! cell; seeds present for one arm only are counted and reported as unpaired. A repeated
+//! (cell, arm, seed) record is ignored after its first occurrence and counted.
+
+use std::collections::{HashMap, HashSet};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use mte_ensemble::{BracketAccumulator, BracketRow};
+use mte_stats::{
+    McNemarResult, StatsError, binomial_se, holm, mcnemar_exact, mean_and_paired_se, paired_se,
+    recovered_fraction, wilcoxon_signed_rank, wilson_interval,
+};
+use serde::Serialize;
+
+use crate::record::{CellSpec, EpisodeRecord, ErrorRecord, Line, Manifest, StageTimes};
+
+mod plot;
+
+pub use plot::Plot;
+use plot::{PlotSpec, Point, Series};
+
+/// Arm text form of open-loop execution (no ensemble: excluded from `M`/`q` tables).
+const OPEN_LOOP: &str = "open-loop";
+
+/// Confidence level of the Wilson intervals.
+const CONFIDENCE: f64 = 0.95;
+
+/// Which arms to compare and which cell to detail.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct ReportOptions {
+    /// Baseline arm; default: the first arm starting with `ewm` (else the first arm).
+    pub baseline_arm: Option<String>,
+    /// Robust arm; default: `median` (else the first arm that is not the baseline).
+    pub robust_arm: Option<String>,
+    /// Cell of the aggregator table; default: the corrupted cell with the most arms (the
+    /// first on ties).
+    pub focus_cell: Option<String>,
+}
+
+/// Why a report could not be built or written.
+#[derive(Debug, thiserror::Error)]
+pub enum ReportError {
+    /// The manifest lists no cell.
+    #[error("the manifest of run `{run}` lists no cell")]
+    NoCells {
+        /// Run name.
+        run: String,
+    },
+    /// Fewer than two arms: nothing to compare.
+    #[error("the run has fewer than two arms ({arms}): nothing to compare")]
+    TooFewArms {
+        /// The arms found, comma separated.
+        arms: String,
+    },
+    /// An arm given in the options is not an arm of any cell.
+    #[error("{role} arm `{arm}` is not an arm of the run (arms: {available})")]
+    UnknownArm {
+        /// `baseline` or `robust`.
+        role: &'static str,
+        /// The arm given.
+        arm: String,
+        /// The arms of the run, comma separated.
+        available: String,
+    },
+    /// Baseline and robust arm are the same.
+    #[error("baseline and robust arm are both `{arm}`")]
+    SameArm {
+        /// The arm.
+        arm: String,
+    },
+    /// The focus cell given in the options is not in the manifest.
+    #[error("focus cell `{cell}` is not a cell of the manifest")]
+    UnknownFocusCell {
+        /// The cell id given.
+        cell: String,
+    },
+    /// An episode record names a cell the manifest does not list.
+    #[error(
+        "episode record of cell `{cell}` (arm `{arm}`, seed {seed}): no such cell in the manifest"
+    )]
+    RecordOutsideManifest {
+        /// Cell id of the record.
+        cell: String,
+        /// Arm of the record.
+        arm: String,
+        /// Seed of the record.
+        seed: u64,
+    },
+    /// An episode record's coverage is NaN or infinite.
+    #[error(
+        "episode record of cell `{cell}`, arm `{arm}`, seed {seed}: max_coverage = {value} is not finite"
+    )]
+    NonFiniteCoverage {
+        /// Cell id.
+        cell: String,
+        /// Arm.
+        arm: String,
+        /// Seed.
+        seed: u64,
+        /// The value.
+        value: f64,
+    },
+    /// A statistic failed on input that should have been valid.
+    #[error("{what}: {source}")]
+    Stats {
+        /// What was being computed (cell and arms).
+        what: String,
+        /// The statistics error.
+        #[source]
+        source: StatsError,
+    },
+    /// Drawing or encoding a plot failed.
+    #[error("plot `{plot}`: {reason}")]
+    Plot {
+        /// Plot name.
+        plot: String,
+        /// What went wrong.
+        reason: String,
+    },
+    /// The bundled font could not be registered with the plotting library.
+    #[error("the bundled plot font (DejaVu Sans) could not be loaded")]
+    Font,
+    /// Writing a file failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file or directory.
+        path: PathBuf,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+fn stats_err(what: impl Into<String>) -> impl FnOnce(StatsError) -> ReportError {
+    let what = what.into();
+    move |source| ReportError::Stats { what, source }
+}
+
+/// A sample mean with its standard error (`None` below two observations).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Estimate {
+    /// Observations.
+    pub n: usize,
+    /// Mean.
+    pub mean: f64,
+    /// Standard error of the mean.
+    pub se: Option<f64>,
+}
+
+impl Estimate {
+    /// Mean and standard error of `values` (`mte_stats::paired_se` of the sample); `None`
+    /// for an empty sample.
+    fn of(values: &[f64], what: &str) -> Result<Option<Self>, ReportError> {
+        if values.is_empty() {
+            return Ok(None);
+        }
+        let n = values.len();
+        let mean = values.iter().sum::<f64>() / n as f64;
+        let se = if n >= 2 {
+            Some(paired_se(values).map_err(stats_err(what))?)
+        } else {
+            None
+        };
+        Ok(Some(Self { n, mean, se }))
+    }
+}
+
+/// One arm against the baseline arm on the seeds both ran in one cell.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Comparison {
+    /// The arm compared with the baseline.
+    pub arm: String,
+    /// Paired episodes (seeds present for both arms).
+    pub n: usize,
+    /// Seeds present for only one of the two arms (left out).
+    pub unpaired: usize,
+    /// Baseline mean max coverage over the paired seeds.
+    pub baseline: Option<Estimate>,
+    /// The arm's mean max coverage over the paired seeds.
+    pub other: Option<Estimate>,
+    /// Baseline success rate over the paired seeds.
+    pub baseline_success: Option<f64>,
+    /// The arm's success rate over the paired seeds.
+    pub other_success: Option<f64>,
+    /// Mean of `other - baseline` per seed, with its paired standard error.
+    pub delta: Option<Estimate>,
+    /// Two-sided Wilcoxon signed-rank p-value on paired max coverage (`None` when every
+    /// difference is zero or there is no pair).
+    pub wilcoxon_p: Option<f64>,
+    /// Exact McNemar test on paired success (`b`: baseline-only, `c`: arm-only successes).
+    pub mcnemar: Option<McNemarResult>,
+}
+
+/// Pairs `other` with `base` by seed (in `base`'s order) and compares them.
+fn compare(
+    base: &[&EpisodeRecord],
+    other: &[&EpisodeRecord],
+    arm: &str,
+    what: &str,
+) -> Result<Comparison, ReportError> {
+    let by_seed: HashMap<u64, &EpisodeRecord> = other.iter().map(|r| (r.seed, *r)).collect();
+    let (mut xb, mut xo, mut sb, mut so) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for b in base {
+        if let Some(o) = by_seed.get(&b.seed) {
+            xb.push(b.max_coverage);
+            xo.push(o.max_coverage);
+            sb.push(b.success);
+            so.push(o.success);
+        }
+    }
+    let n = xb.len();
+    let unpaired = base.len() + other.len() - 2 * n;
+    let rate = |s: &[bool]| (n > 0).then(|| s.iter().filter(|&&x| x).count() as f64 / n as f64);
+    let delta = match n {
+        0 => None,
+        1 => Some(Estimate {
+            n,
+            mean: xo[0] - xb[0],
+            se: None,
+        }),
+        _ => {
+            let d = mean_and_paired_se(&xo, &xb).map_err(stats_err(what))?;
+            Some(Estimate {
+                n,
+                mean: d.mean_diff,
+                se: Some(d.se),
+            })
+        }
+    };
+    let wilcoxon_p = if n == 0 {
+        None
+    } else {
+        match wilcoxon_signed_rank(&xo, &xb) {
+            Ok(w) => Some(w.p_value),
+            Err(StatsError::AllZeroDifferences { .. }) => None,
+            Err(e) => return Err(stats_err(what)(e)),
+        }
+    };
+    let mcnemar = if n == 0 {
+        None
+    } else {
+        let b = sb.iter().zip(&so).filter(|&(&b, &o)| b && !o).count() as u64;
+        let c = sb.iter().zip(&so).filter(|&(&b, &o)| !b && o).count() as u64;
+        Some(mcnemar_exact(b, c).map_err(stats_err(what))?)
+    };
+    Ok(Comparison {
+        arm: arm.to_string(),
+        n,
+        unpaired,
+        baseline: Estimate::of(&xb, what)?,
+        other: Estimate::of(&xo, what)?,
+        baseline_success: rate(&sb),
+        other_success: rate(&so),
+        delta,
+        wilcoxon_p,
+        mcnemar,
+    })
+}
+
+/// The baseline arm on the clean cell of a policy and stride.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CleanRef {
+    /// Clean cell id.
+    pub cell: String,
+    /// Baseline mean max coverage over all its episodes there.
+    pub coverage: Estimate,
+    /// Baseline success rate there.
+    pub success: f64,
+}
+
+/// Recovered fraction of one cell; `None` where undefined, with the reason.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Recovered {
+    /// On mean max coverage.
+    pub coverage: Option<f64>,
+    /// On success rate.
+    pub success: Option<f64>,
+    /// Why the coverage fraction is undefined, when it is.
+    pub note: Option<String>,
+}
+
+/// A row of the main table (one corrupted cell).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MainRow {
+    /// Cell id.
+    pub cell: String,
+    /// Policy label.
+    pub policy: String,
+    /// The corruption's text form.
+    pub corruption: String,
+    /// Nominal `q`.
+    pub q: usize,
+    /// Query stride.
+    pub h: usize,
+    /// The baseline arm on the matching clean cell, if the run has one.
+    pub clean: Option<CleanRef>,
+    /// Robust against baseline; `None` when the cell lacks one of the two arms.
+    pub comparison: Option<Comparison>,
+    /// Holm-adjusted Wilcoxon p over the rows of the table.
+    pub holm_wilcoxon: Option<f64>,
+    /// Holm-adjusted McNemar p over the rows of the table.
+    pub holm_mcnemar: Option<f64>,
+    /// Recovered fraction.
+    pub recovered: Recovered,
+}
+
+/// A row of the aggregator table.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FocusRow {
+    /// Arm.
+    pub arm: String,
+    /// Episodes of the arm in the cell.
+    pub n: usize,
+    /// Successful episodes.
+    pub successes: usize,
+    /// Wilson interval of the success rate.
+    pub success_ci: Option<(f64, f64)>,
+    /// Mean max coverage over the arm's episodes.
+    pub coverage: Option<Estimate>,
+    /// Against the baseline (`None` for the baseline itself, or when the cell lacks it).
+    pub vs_baseline: Option<Comparison>,
+    /// Holm-adjusted Wilcoxon p over the arms.
+    pub holm_wilcoxon: Option<f64>,
+    /// Holm-adjusted McNemar p over the arms.
+    pub holm_mcnemar: Option<f64>,
+}
+
+/// The aggregator table of one cell.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FocusTable {
+    /// Cell id.
+    pub cell: String,
+    /// The corruption's text form.
+    pub corruption: String,
+    /// One row per arm, in the cell's arm order.
+    pub rows: Vec<FocusRow>,
+}
+
+/// Bracket diagnostics of one arm over the corrupted cells.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ArmBrackets {
+    /// Arm.
+    pub arm: String,
+    /// Episodes that carried a bracket accumulator.
+    pub episodes: usize,
+    /// `BracketAccumulator::rows` of the merged accumulators.
+    pub rows: Vec<BracketRow>,
+}
+
+/// Measured `M(tau)` and `q(tau)` counts of one arm.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Distribution {
+    /// Arm.
+    pub arm: String,
+    /// `m[k]`: control steps with `M = k`, summed over episodes.
+    pub m: Vec<u64>,
+    /// `q[k]`: control steps with `q = k`, summed over episodes.
+    pub q: Vec<u64>,
+}
+
+/// Wall time of one arm by stage, summed over its episodes.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Overhead {
+    /// Arm.
+    pub arm: String,
+    /// Episodes.
+    pub episodes: usize,
+    /// Control steps.
+    pub steps: u64,
+    /// Stage times summed over episodes.
+    pub times: StageTimes,
+    /// `StageTimes::overhead_s` summed over episodes.
+    pub runner_s: f64,
+}
+
+impl Overhead {
+    /// Runner overhead per control step in microseconds.
+    pub fn us_per_step(&self) -> Option<f64> {
+        (self.steps > 0).then(|| 1e6 * self.runner_s / self.steps as f64)
+    }
+}
+
+/// The report of a run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Report {
+    /// Run name.
+    pub name: String,
+    /// The manifest's metadata line (format, versions, commit, seed).
+    pub manifest: ManifestInfo,
+    /// Cells in the manifest.
+    pub cells: usize,
+    /// Corrupted cells.
+    pub corrupted_cells: usize,
+    /// Episode records used (duplicates excluded).
+    pub episodes: usize,
+    /// Baseline arm.
+    pub baseline: String,
+    /// Robust arm.
+    pub robust: String,
+    /// Main table, corrupted cells in manifest order.
+    pub main: Vec<MainRow>,
+    /// Aggregator table.
+    pub focus: FocusTable,
+    /// Bracket tables, arms in run order (arms without bracket data left out).
+    pub brackets: Vec<ArmBrackets>,
+    /// `M`/`q` distributions of the ensemble arms.
+    pub distributions: Vec<Distribution>,
+    /// Stage times per arm.
+    pub overhead: Vec<Overhead>,
+    /// Error records, in file order.
+    pub failures: Vec<ErrorRecord>,
+    /// Remarks on the data (duplicates, unpaired seeds, missing arms).
+    pub notes: Vec<String>,
+    /// Plots.
+    pub plots: Vec<Plot>,
+}
+
+/// What the manifest says about the run itself.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ManifestInfo {
+    /// Format tag.
+    pub format: String,
+    /// mte version.
+    pub mte_version: String,
+    /// Source commit, when known.
+    pub git_commit: Option<String>,
+    /// Creation time (Unix seconds).
+    pub created_unix_s: u64,
+    /// Seed of the per-query sampling noise.
+    pub noise_seed: u64,
+}
+
+/// The records of one cell, per arm, in seed order.
+struct CellData<'a> {
+    spec: &'a CellSpec,
+    /// The spec's arms, then arms only seen in records.
+    arms: Vec<String>,
+    eps: Vec<Vec<&'a EpisodeRecord>>,
+    seen: HashSet<(usize, u64)>,
+}
+
+impl<'a> CellData<'a> {
+    fn new(spec: &'a CellSpec) -> Self {
+        let mut arms: Vec<String> = Vec::new();
+        for a in &spec.arms {
+            if !arms.contains(a) {
+                arms.push(a.clone());
+            }
+        }
+        let eps = vec![Vec::new(); arms.len()];
+        Self {
+            spec,
+            arms,
+            eps,
+            seen: HashSet::new(),
+        }
+    }
+
+    /// Adds a record; `false` for a repeated (arm, seed).
+    fn add(&mut self, r: &'a EpisodeRecord) -> bool {
+        let ai = match self.arms.iter().position(|a| *a == r.arm) {
+            Some(i) => i,
+            None => {
+                self.arms.push(r.arm.clone());
+                self.eps.push(Vec::new());
+                self.arms.len() - 1
+            }
+        };
+        if !self.seen.insert((ai, r.seed)) {
+            return false;
+        }
+        self.eps[ai].push(r);
+        true
+    }
+
+    /// Orders every arm's records by the spec's seed order (unknown seeds last, ascending).
+    fn sort(&mut self) {
+        let mut pos: HashMap<u64, usize> = HashMap::new();
+        for (i, &s) in self.spec.seeds.iter().enumerate() {
+            pos.entry(s).or_insert(i);
+        }
+        for v in &mut self.eps {
+            v.sort_by_key(|r| (pos.get(&r.seed).copied().unwrap_or(usize::MAX), r.seed));
+        }
+    }
+
+    fn episodes(&self, arm: &str) -> &[&'a EpisodeRecord] {
+        self.arms
+            .iter()
+            .position(|a| a == arm)
+            .map_or(&[], |i| self.eps[i].as_slice())
+    }
+
+    fn has(&self, arm: &str) -> bool {
+        self.arms.iter().any(|a| a == arm)
+    }
+
+    fn is_clean(&self) -> bool {
+        self.spec.corruption.is_clean()
+    }
+}
+
+/// Holm over the defined p-values, scattered back.
+fn holm_opt(ps: &[Option<f64>], what: &str) -> Result<Vec<Option<f64>>, ReportError> {
+    let defined: Vec<f64> = ps.iter().flatten().copied().collect();
+    let adj = holm(&defined).map_err(stats_err(what))?;
+    let mut it = adj.into_iter();
+    Ok(ps.iter().map(|p| p.and_then(|_| it.next())).collect())
+}
+
+fn coverages(eps: &[&EpisodeRecord]) -> Vec<f64> {
+    eps.iter().map(|r| r.max_coverage).collect()
+}
+
+fn success_count(eps: &[&EpisodeRecord]) -> usize {
+    eps.iter().filter(|r| r.success).count()
+}
+
+/// The last path component of a policy, for titles and file names.
+fn policy_label(policy: &str) -> &str {
+    policy
+        .trim_end_matches(['/', '\\'])
+        .rsplit(['/', '\\'])
+        .next()
+        .filter(|s| !s.is_empty())
+        .unwrap_or(policy)
+}
+
+/// The serde `kind` tag of a tagged enum value (`blank`, `burst`, ...).
+fn kind_tag<T: Serialize>(v: &T) -> String {
+    serde_json::to_value(v)
+        .ok()
+        .and_then(|j| j.get("kind").and_then(|k| k.as_str()).map(str::to_string))
+        .unwrap_or_default()
+}
+
+/// A file-name-safe version of `s`.
+fn slug(s: &str) -> String {
+    s.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_') {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+/// `base`, or `base-2`, `base-3`, ... if taken.
+fn unique(taken: &mut HashSet<String>, base: String) -> String {
+    let mut name = base.clone();
+    let mut k = 2;
+    while !taken.insert(name.clone()) {
+        name = format!("{base}-{k}");
+        k += 1;
+    }
+    name
+}
+
+/// Builds the report of a run from its manifest and the lines of its cell files.
+///
+/// # Errors
+///
+/// [`ReportError`] for an empty manifest, fewer than two arms, an unknown arm or focus cell
+/// in `opts`, a record of a cell the manifest does not list or with a non-finite coverage,
+/// and plots that cannot be drawn.
+pub fn build(
+    manifest: &Manifest,
+    lines: &[Line],
+    opts: &ReportOptions,
+) -> Result<Report, ReportError> {
+    if manifest.cells.is_empty() {
+        return Err(ReportError::NoCells {
+            run: manifest.name.clone(),
+        });
+    }
+    let index: HashMap<&str, usize> = manifest
+        .cells
+        .iter()
+        .enumerate()
+        .map(|(i, c)| (c.id.as_str(), i))
+        .collect();
+    let mut cells: Vec<CellData<'_>> = manifest.cells.iter().map(CellData::new).collect();
+    let mut failures = Vec::new();
+    let (mut episodes, mut duplicates) = (0usize, 0usize);
+    for line in lines {
+        match line {
+            Line::Episode(r) => {
+                let &ci = index.get(r.cell.as_str()).ok_or_else(|| {
+                    ReportError::RecordOutsideManifest {
+                        cell: r.cell.clone(),
+                        arm: r.arm.clone(),
+                        seed: r.seed,
+                    }
+                })?;
+                if !r.max_coverage.is_finite() {
+                    return Err(ReportError::NonFiniteCoverage {
+                        cell: r.cell.clone(),
+                        arm: r.arm.clone(),
+                        seed: r.seed,
+                        value: r.max_coverage,
+                    });
+                }
+                if cells[ci].add(r) {
+                    episodes += 1;
+                } else {
+                    duplicates += 1;
+                }
+            }
+            Line::Error(e) => failures.push(e.clone()),
+        }
+    }
+    for c in &mut cells {
+        c.sort();
+    }
+    let mut notes = Vec::new();
+    if duplicates > 0 {
+        notes.push(format!(
+            "{duplicates} repeated (cell, arm, seed) episode record(s) ignored after the first"
+        ));
+    }
+    for c in &cells {
+        for a in c.arms.iter().filter(|a| !c.spec.arms.contains(a)) {
+            notes.push(format!(
+                "cell `{}`: records of arm `{a}`, which the manifest does not list",
+                c.spec.id
+            ));
+        }
+    }
+
+    // Arms of the run, in order of first appearance.
+    let mut all_arms: Vec<String> = Vec::new();
+    for c in &cells {
+        for a in &c.arms {
+            if !all_arms.contains(a) {
+                all_arms.push(a.clone());
+            }
+        }
+    }
+    let (baseline, robust) = choose_arms(&all_arms, opts)?;
+
+    let corrupted: Vec<usize> = (0..cells.len()).filter(|&i| !cells[i].is_clean()).collect();
+    let clean_of = |ci: usize| -> Option<usize> {
+        let s = cells[ci].spec;
+        cells
+            .iter()
+            .position(|c| c.is_clean() && c.spec.policy == s.policy && c.spec.h == s.h)
+    };
+    let clean_ref = |cj: usize| -> Result<Option<CleanRef>, ReportError> {
+        let eps = cells[cj].episodes(&baseline);
+        let what = format!("cell `{}`, arm `{baseline}`", cells[cj].spec.id);
+        Ok(
+            Estimate::of(&coverages(eps), &what)?.map(|coverage| CleanRef {
+                cell: cells[cj].spec.id.clone(),
+                coverage,
+                success: success_count(eps) as f64 / eps.len() as f64,
+            }),
+        )
+    };
+
+    // 1 + 4. Main table and recovered fractions.
+    let mut main = Vec::new();
+    for &ci in &corrupted {
+        let c = &cells[ci];
+        let clean = match clean_of(ci) {
+            Some(cj) => clean_ref(cj)?,
+            None => None,
+        };
+        let comparison = if c.has(&baseline) && c.has(&robust) {
+            let what = format!("cell `{}`, `{robust}` vs `{baseline}`", c.spec.id);
+            Some(compare(
+                c.episodes(&baseline),
+                c.episodes(&robust),
+                &robust,
+                &what,
+            )?)
+        } else {
+            notes.push(format!(
+                "cell `{}` lacks arm `{}`: no comparison",
+                c.spec.id,
+                if c.has(&baseline) { &robust } else { &baseline }
+            ));
+            None
+        };
+        if let Some(cmp) = comparison.as_ref().filter(|x| x.unpaired > 0) {
+            notes.push(format!(
+                "cell `{}`: {} seed(s) ran only one of `{baseline}` and `{robust}` and are left out of the pairing",
+                c.spec.id, cmp.unpaired
+            ));
+        }
+        let recovered = recovered(clean.as_ref(), comparison.as_ref());
+        main.push(MainRow {
+            cell: c.spec.id.clone(),
+            policy: c.spec.policy.clone(),
+            corruption: c.spec.corruption.to_string(),
+            q: c.spec.q(),
+            h: c.spec.h,
+            clean,
+            comparison,
+            holm_wilcoxon: None,
+            holm_mcnemar: None,
+            recovered,
+        });
+    }
+    let pw: Vec<Option<f64>> = main
+        .iter()
+        .map(|r| r.comparison.as_ref().and_then(|c| c.wilcoxon_p))
+        .collect();
+    let pm: Vec<Option<f64>> = main
+        .iter()
+        .map(|r| {
+            r.comparison
+                .as_ref()
+                .and_then(|c| c.mcnemar.map(|m| m.p_value))
+        })
+        .collect();
+    let hw = holm_opt(&pw, "Holm over the main table (Wilcoxon)")?;
+    let hm = holm_opt(&pm, "Holm over the main table (McNemar)")?;
+    for ((r, w), m) in main.iter_mut().zip(hw).zip(hm) {
+        r.holm_wilcoxon = w;
+        r.holm_mcnemar = m;
+    }
+
+    // 2. Aggregator table.
+    let focus_ci = match &opts.focus_cell {
+        Some(id) => *index
+            .get(id.as_str())
+            .ok_or_else(|| ReportError::UnknownFocusCell { cell: id.clone() })?,
+        None => {
+            let pool: Vec<usize> = if corrupted.is_empty() {
+                (0..cells.len()).collect()
+            } else {
+                corrupted.clone()
+            };
+            let mut best = pool[0];
+            for &i in &pool {
+                if cells[i].arms.len() > cells[best].arms.len() {
+                    best = i;
+                }
+            }
+            best
+        }
+    };
+    let focus = focus_table(&cells[focus_ci], &baseline, &mut notes)?;
+
+    // 3, 5, 6. Per-arm tables.
+    let diag_cells: &[usize] = &corrupted;
+    let mut brackets = Vec::new();
+    let mut distributions = Vec::new();
+    let mut overhead = Vec::new();
+    for arm in &all_arms {
+        let mut acc = BracketAccumulator::default();
+        let mut with_bracket = 0;
+        let (mut m, mut q) = (Vec::<u64>::new(), Vec::<u64>::new());
+        for &ci in diag_cells {
+            for r in cells[ci].episodes(arm) {
+                if let Some(b) = &r.bracket {
+                    acc.merge(b);
+                    with_bracket += 1;
+                }
+                add_counts(&mut m, &r.m_counts);
+                add_counts(&mut q, &r.q_counts);
+            }
+        }
+        if with_bracket > 0 {
+            brackets.push(ArmBrackets {
+                arm: arm.clone(),
+                episodes: with_bracket,
+                rows: acc.rows(),
+            });
+        }
+        if arm != OPEN_LOOP && (m.iter().any(|&k| k > 0) || q.iter().any(|&k| k > 0)) {
+            distributions.push(Distribution {
+                arm: arm.clone(),
+                m,
+                q,
+            });
+        }
+        let mut o = Overhead {
+            arm: arm.clone(),
+            episodes: 0,
+            steps: 0,
+            times: StageTimes::default(),
+            runner_s: 0.0,
+        };
+        for c in &cells {
+            for r in c.episodes(arm) {
+                o.episodes += 1;
+                o.steps += r.steps as u64;
+                o.times.policy_s += r.times.policy_s;
+                o.times.sim_s += r.times.sim_s;
+                o.times.render_s += r.times.render_s;
+                o.times.corruption_s += r.times.corruption_s;
+                o.times.ensemble_s += r.times.ensemble_s;
+                o.times.total_s += r.times.total_s;
+                o.runner_s += r.times.overhead_s();
+            }
+        }
+        if o.episodes > 0 {
+            overhead.push(o);
+        }
+    }
+
+    // 8. Plots.
+    let plots = plots(&cells, &corrupted, &baseline, &main)?
+        .into_iter()
+        .map(Plot::new)
+        .collect::<Result<Vec<_>, _>>()?;
+
+    Ok(Report {
+        name: manifest.name.clone(),
+        manifest: ManifestInfo {
+            format: manifest.format.clone(),
+            mte_version: manifest.mte_version.clone(),
+            git_commit: manifest.git_commit.clone(),
+            created_unix_s: manifest.created_unix_s,
+            noise_seed: manifest.noise_seed,
+        },
+        cells: cells.len(),
+        corrupted_cells: corrupted.len(),
+        episodes,
+        baseline,
+        robust,
+        main,
+        focus,
+        brackets,
+        distributions,
+        overhead,
+        failures,
+        notes,
+        plots,
+    })
+}
+
+/// Baseline and robust arm from the options or the defaults.
+fn choose_arms(all: &[String], opts: &ReportOptions) -> Result<(String, String), ReportError> {
+    let available = || all.join(", ");
+    let check = |role: &'static str, a: &String| {
+        if all.contains(a) {
+            Ok(a.clone())
+        } else {
+            Err(ReportError::UnknownArm {
+                role,
+                arm: a.clone(),
+                available: available(),
+            })
+        }
+    };
+    let too_few = || ReportError::TooFewArms { arms: available() };
+    let baseline = match &opts.baseline_arm {
+        Some(a) => check("baseline", a)?,
+        None => all
+            .iter()
+            .find(|a| a.starts_with("ewm"))
+            .or(all.first())
+            .cloned()
+            .ok_or_else(too_few)?,
+    };
+    let robust = match &opts.robust_arm {
+        Some(a) => check("robust", a)?,
+        None => all
+            .iter()
+            .find(|a| *a == "median" && **a != baseline)
+            .or_else(|| all.iter().find(|a| **a != baseline))
+            .cloned()
+            .ok_or_else(too_few)?,
+    };
+    if baseline == robust {
+        return Err(ReportError::SameArm { arm: baseline });
+    }
+    Ok((baseline, robust))
+}
+
+fn add_counts(acc: &mut Vec<u64>, counts: &[u64]) {
+    if acc.len() < counts.len() {
+        acc.resize(counts.len(), 0);
+    }
+    for (a, &k) in acc.iter_mut().zip(counts) {
+        *a += k;
+    }
+}
+
+/// Recovered fractions of a row; `None` with the reason where undefined.
+fn recovered(clean: Option<&CleanRef>, cmp: Option<&Comparison>) -> Recovered {
+    let Some(clean) = clean else {
+        return Recovered {
+            coverage: None,
+            success: None,
+            note: Some("no clean cell with the baseline arm for this policy and h".into()),
+        };
+    };
+    let Some((b, o)) = cmp.and_then(|c| c.baseline.zip(c.other)) else {
+        return Recovered {
+            coverage: None,
+            success: None,
+            note: Some("no paired episodes".into()),
+        };
+    };
+    let (coverage, note) = match recovered_fraction(clean.coverage.mean, b.mean, o.mean) {
+        Ok(f) => (Some(f), None),
+        Err(e) => (None, Some(e.to_string())),
+    };
+    let success = cmp
+        .and_then(|c| c.baseline_success.zip(c.other_success))
+        .and_then(|(sb, so)| recovered_fraction(clean.success, sb, so).ok());
+    Recovered {
+        coverage,
+        success,
+        note,
+    }
+}
+
+fn focus_table(
+    c: &CellData<'_>,
+    baseline: &str,
+    notes: &mut Vec<String>,
+) -> Result<FocusTable, ReportError> {
+    let id = &c.spec.id;
+    if !c.has(baseline) {
+        notes.push(format!(
+            "focus cell `{id}` lacks the baseline arm `{baseline}`: no comparison"
+        ));
+    }
+    let mut rows = Vec::new();
+    for arm in &c.arms {
+        let eps = c.episodes(arm);
+        let what = format!("cell `{id}`, arm `{arm}`");
+        let n = eps.len();
+        let successes = success_count(eps);
+        let success_ci = if n > 0 {
+            Some(
+                wilson_interval(successes as u64, n as u64, CONFIDENCE)
+                    .map_err(stats_err(&what))?,
+            )
+        } else {
+            None
+        };
+        let vs_baseline = if arm != baseline && c.has(baseline) {
+            let what = format!("cell `{id}`, `{arm}` vs `{baseline}`");
+            Some(compare(c.episodes(baseline), eps, arm, &what)?)
+        } else {
+            None
+        };
+        rows.push(FocusRow {
+            arm: arm.clone(),
+            n,
+            successes,
+            success_ci,
+            coverage: Estimate::of(&coverages(eps), &what)?,
+            vs_baseline,
+            holm_wilcoxon: None,
+            holm_mcnemar: None,
+        });
+    }
+    let pw: Vec<Option<f64>> = rows
+        .iter()
+        .map(|r| r.vs_baseline.as_ref().and_then(|c| c.wilcoxon_p))
+        .collect();
+    let pm: Vec<Option<f64>> = rows
+        .iter()
+        .map(|r| {
+            r.vs_baseline
+                .as_ref()
+                .and_then(|c| c.mcnemar.map(|m| m.p_value))
+        })
+        .collect();
+    let hw = holm_opt(&pw, "Holm over arms (Wilcoxon)")?;
+    let hm = holm_opt(&pm, "Holm over arms (McNemar)")?;
+    for ((r, w), m) in rows.iter_mut().zip(hw).zip(hm) {
+        r.holm_wilcoxon = w;
+        r.holm_mcnemar = m;
+    }
+    Ok(FocusTable {
+        cell: id.clone(),
+        corruption: c.spec.corruption.to_string(),
+        rows,
+    })
+}
+
+/// Arms of `members`, in their order.
+fn arms_of(cells: &[CellData<'_>], members: &[usize]) -> Vec<String> {
+    let mut sorted = members.to_vec();
+    sorted.sort_unstable();
+    let mut arms: Vec<String> = Vec::new();
+    for &ci in &sorted {
+        for a in &cells[ci].arms {
+            if !arms.contains(a) {
+                arms.push(a.clone());
+            }
+        }
+    }
+    arms
+}
+
+/// Specs of every plot: coverage and success against `q`, recovered fraction against the
+/// attack budget (or `q`).
+fn plots(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    baseline: &str,
+    main: &[MainRow],
+) -> Result<Vec<PlotSpec>, ReportError> {
+    let mut taken = HashSet::new();
+    let mut specs = Vec::new();
+    let clean_of = |ci: usize| -> Option<usize> {
+        let s = cells[ci].spec;
+        cells
+            .iter()
+            .position(|c| c.is_clean() && c.spec.policy == s.policy && c.spec.h == s.h)
+    };
+
+    // (a) Coverage and success against q, per (policy, fault, schedule kind, h).
+    // Key: (policy, fault, schedule kind, h); value: member cells.
+    type QGroup = ((String, String, String, usize), Vec<usize>);
+    let mut groups: Vec<QGroup> = Vec::new();
+    for &ci in corrupted {
+        let s = cells[ci].spec;
+        let key = (
+            s.policy.clone(),
+            s.corruption.fault.to_string(),
+            kind_tag(&s.corruption.schedule),
+            s.h,
+        );
+        match groups.iter_mut().find(|(k, _)| *k == key) {
+            Some((_, v)) => v.push(ci),
+            None => groups.push((key, vec![ci])),
+        }
+    }
+    for ((policy, fault, kind, h), members) in &groups {
+        let mut points: Vec<(usize, usize)> =
+            members.iter().map(|&ci| (cells[ci].spec.q(), ci)).collect();
+        if let Some(cj) = clean_of(members[0]) {
+            points.push((0, cj));
+        }
+        points.sort_by_key(|&(q, ci)| (q, ci));
+        let all: Vec<usize> = points.iter().map(|p| p.1).collect();
+        let arms = arms_of(cells, &all);
+        let (mut cov, mut succ) = (Vec::new(), Vec::new());
+        for arm in &arms {
+            let (mut pc, mut ps) = (Vec::new(), Vec::new());
+            for &(q, ci) in &points {
+                let eps = cells[ci].episodes(arm);
+                let what = format!("cell `{}`, arm `{arm}`", cells[ci].spec.id);
+                if let Some(e) = Estimate::of(&coverages(eps), &what)? {
+                    pc.push(Point {
+                        x: q as f64,
+                        y: e.mean,
+                        err: e.se,
+                    });
+                    let rate = success_count(eps) as f64 / eps.len() as f64;
+                    let se = binomial_se(rate, eps.len() as u64).map_err(stats_err(&what))?;
+                    ps.push(Point {
+                        x: q as f64,
+                        y: rate,
+                        err: Some(se),
+                    });
+                }
+            }
+            if !pc.is_empty() {
+                cov.push(Series {
+                    label: arm.clone(),
+                    points: pc,
+                });
+                succ.push(Series {
+                    label: arm.clone(),
+                    points: ps,
+                });
+            }
+        }
+        let label = policy_label(policy);
+        let stem = slug(&format!("{label}-{fault}-{kind}-h{h}"));
+        let title = format!("{label}: {fault} ({kind}), h = {h}");
+        let (cov_title, succ_title) = (
+            format!("Mean max coverage, {title}"),
+            format!("Success rate, {title}"),
+        );
+        let x_label = "q (corrupted queries per period)".to_string();
+        specs.push(PlotSpec {
+            name: unique(&mut taken, format!("coverage-{stem}")),
+            title: cov_title,
+            x_label: x_label.clone(),
+            y_label: "mean max coverage (± SE)".into(),
+            integer_x: true,
+            y_include: (0.0, 1.0),
+            y_refs: vec![],
+            series: cov,
+        });
+        specs.push(PlotSpec {
+            name: unique(&mut taken, format!("success-{stem}")),
+            title: succ_title,
+            x_label,
+            y_label: "success rate (± binomial SE)".into(),
+            integer_x: true,
+            y_include: (0.0, 1.0),
+            y_refs: vec![],
+            series: succ,
+        });
+    }
+
+    // (b) Recovered fraction against the attack budget (or q), per (policy, fault kind, h).
+    let mut groups: Vec<((String, String, usize), Vec<usize>)> = Vec::new();
+    for &ci in corrupted {
+        let s = cells[ci].spec;
+        let key = (s.policy.clone(), kind_tag(&s.corruption.fault), s.h);
+        match groups.iter_mut().find(|(k, _)| *k == key) {
+            Some((_, v)) => v.push(ci),
+            None => groups.push((key, vec![ci])),
+        }
+    }
+    let row_of = |ci: usize| main.iter().find(|r| r.cell == cells[ci].spec.id);
+    for ((policy, kind, h), members) in &groups {
+        let budgeted: Vec<usize> = members
+            .iter()
+            .copied()
+            .filter(|&ci| cells[ci].spec.budget().is_some())
+            .collect();
+        let by_budget = budgeted.len() >= 2;
+        let used = if by_budget { &budgeted } else { members };
+        let schedules: Vec<String> = {
+            let mut v: Vec<String> = Vec::new();
+            for &ci in used {
+                let s = schedule_label(cells[ci].spec);
+                if !v.contains(&s) {
+                    v.push(s);
+                }
+            }
+            v
+        };
+        let split = by_budget && schedules.len() > 1;
+        let mut series: Vec<Series> = Vec::new();
+        for arm in arms_of(cells, used).iter().filter(|a| *a != baseline) {
+            for sched in if split {
+                schedules.clone()
+            } else {
+                vec![String::new()]
+            } {
+                let mut pts = Vec::new();
+                for &ci in used {
+                    let c = &cells[ci];
+                    if (split && schedule_label(c.spec) != sched) || !c.has(arm) || !c.has(baseline)
+                    {
+                        continue;
+                    }
+                    let what = format!("cell `{}`, `{arm}` vs `{baseline}`", c.spec.id);
+                    let cmp = compare(c.episodes(baseline), c.episodes(arm), arm, &what)?;
+                    let clean_mean = row_of(ci)
+                        .and_then(|r| r.clean.as_ref())
+                        .map(|r| r.coverage.mean);
+                    let f = match (clean_mean, cmp.baseline, cmp.other) {
+                        (Some(cl), Some(b), Some(o)) => recovered_fraction(cl, b.mean, o.mean).ok(),
+                        _ => None,
+                    };
+                    let x = if by_budget {
+                        c.spec.budget().unwrap_or(0.0)
+                    } else {
+                        c.spec.q() as f64
+                    };
+                    if let Some(y) = f.filter(|y| y.is_finite()) {
+                        pts.push(Point { x, y, err: None });
+                    }
+                }
+                pts.sort_by(|a, b| a.x.total_cmp(&b.x));
+                if !pts.is_empty() {
+                    series.push(Series {
+                        label: if split {
+                            format!("{arm}, {sched}")
+                        } else {
+                            arm.clone()
+                        },
+                        points: pts,
+                    });
+                }
+            }
+        }
+        if series.is_empty() {
+            continue;
+        }
+        let label = policy_label(policy);
+        specs.push(PlotSpec {
+            name: unique(
+                &mut taken,
+                format!("recovered-{}", slug(&format!("{label}-{kind}-h{h}"))),
+            ),
+            title: format!("Recovered fraction vs {baseline}, {label}: {kind}, h = {h}"),
+            x_label: if by_budget {
+                "attack budget".into()
+            } else {
+                "q (corrupted queries per period)".into()
+            },
+            y_label: "recovered fraction".into(),
+            integer_x: !by_budget,
+            y_include: (0.0, 1.0),
+            y_refs: vec![0.0, 1.0],
+            series,
+        });
+    }
+    Ok(specs)
+}
+
+/// The schedule part of a corruption's text form (`burst-q2`).
+fn schedule_label(s: &CellSpec) -> String {
+    let full = s.corruption.to_string();
+    let fault = format!("{}-", s.corruption.fault);
+    full.strip_prefix(&fault).unwrap_or(&full).to_string()
+}
+
+// ---------------------------------------------------------------------------------------
+// Rendering.
+
+/// Coverage-like values: three decimals, no negative zero.
+fn f3(x: f64) -> String {
+    let s = format!("{x:.3}");
+    if s == "-0.000" { "0.000".into() } else { s }
+}
+
+/// Signed, three decimals.
+fn s3(x: f64) -> String {
+    let s = format!("{x:+.3}");
+    if s == "-0.000" { "+0.000".into() } else { s }
+}
+
+/// A percentage with one decimal (`x` in `[0, 1]`).
+fn pct(x: f64) -> String {
+    let s = format!("{:.1}", 100.0 * x);
+    if s == "-0.0" { "0.0".into() } else { s }
+}
+
+/// A p-value with two significant digits, in scientific form below `1e-3`.
+fn fmt_p(p: f64) -> String {
+    if p.is_nan() {
+        return "n/a".into();
+    }
+    if p <= 0.0 {
+        return "< 1e-300".into();
+    }
+    if p < 1e-3 {
+        return format!("{p:.1e}");
+    }
+    let decimals = (1 - p.log10().floor() as i32).max(1) as usize;
+    format!("{p:.decimals$}")
+}
+
+fn opt_p(p: Option<f64>) -> String {
+    p.map_or_else(|| "n/a".into(), fmt_p)
+}
+
+fn est(e: Option<&Estimate>) -> String {
+    match e {
+        Some(Estimate {
+            mean, se: Some(se), ..
+        }) => format!("{} ± {}", f3(*mean), f3(*se)),
+        Some(Estimate { mean, se: None, .. }) => f3(*mean),
+        None => "—".into(),
+    }
+}
+
+fn delta(e: Option<&Estimate>) -> String {
+    match e {
+        Some(Estimate {
+            mean, se: Some(se), ..
+        }) => format!("{} ± {}", s3(*mean), f3(*se)),
+        Some(Estimate { mean, se: None, .. }) => s3(*mean),
+        None => "—".into(),
+    }
+}
+
+fn code(s: &str) -> String {
+    format!("`{s}`")
+}
+
+/// A block of the document; Markdown and HTML render the same blocks.
+enum Block {
+    Title(String),
+    Heading(String),
+    Para(String),
+    Bullets(Vec<String>),
+    Table {
+        head: Vec<String>,
+        rows: Vec<Vec<String>>,
+    },
+    Plots,
+}
+
+fn table(head: &[&str], rows: Vec<Vec<String>>) -> Block {
+    Block::Table {
+        head: head.iter().map(|s| s.to_string()).collect(),
+        rows,
+    }
+}
+
+impl Report {
+    fn blocks(&self) -> Vec<Block> {
+        let mut b = Vec::new();
+        let m = &self.manifest;
+        b.push(Block::Title(format!("Evaluation report: {}", self.name)));
+        let mut meta = vec![
+            format!(
+                "run format {}, mte {}, commit {}, created {} (Unix s), noise seed {}",
+                code(&m.format),
+                m.mte_version,
+                m.git_commit
+                    .as_deref()
+                    .map_or_else(|| "unknown".into(), code),
+                m.created_unix_s,
+                m.noise_seed
+            ),
+            format!(
+                "{} cells ({} corrupted), {} episode records, {} failure record(s)",
+                self.cells,
+                self.corrupted_cells,
+                self.episodes,
+                self.failures.len()
+            ),
+            format!(
+                "baseline arm {}, robust arm {}",
+                code(&self.baseline),
+                code(&self.robust)
+            ),
+        ];
+        meta.extend(self.notes.iter().cloned());
+        b.push(Block::Bullets(meta));
+
+        // 1.
+        b.push(Block::Heading(format!(
+            "1. Main table: {} against {}",
+            code(&self.robust),
+            code(&self.baseline)
+        )));
+        b.push(Block::Para(format!(
+            "One row per corrupted cell. Mean max coverage ± standard error over the seeds both \
+             arms ran (n), success rate in parentheses; clean: the baseline on the clean cell of \
+             the same policy and h. Δ = robust − baseline per seed, ± paired standard error. \
+             p (W): two-sided Wilcoxon signed-rank test on paired max coverage; p (McN): exact \
+             McNemar test on paired success, b:c = baseline-only : robust-only successes. Holm \
+             over the {} rows.",
+            self.main.len()
+        )));
+        if self.main.is_empty() {
+            b.push(Block::Para("No corrupted cell.".into()));
+        } else {
+            let rows = self
+                .main
+                .iter()
+                .map(|r| {
+                    let c = r.comparison.as_ref();
+                    let with_rate = |e: Option<&Estimate>, s: Option<f64>| match s {
+                        Some(s) => format!("{} ({}%)", est(e), pct(s)),
+                        None => est(e),
+                    };
+                    vec![
+                        code(&r.cell),
+                        r.corruption.clone(),
+                        r.q.to_string(),
+                        r.h.to_string(),
+                        c.map_or_else(|| "0".into(), |c| c.n.to_string()),
+                        r.clean.as_ref().map_or_else(
+                            || "—".into(),
+                            |k| format!("{} ({}%)", f3(k.coverage.mean), pct(k.success)),
+                        ),
+                        with_rate(
+                            c.and_then(|c| c.baseline.as_ref()),
+                            c.and_then(|c| c.baseline_success),
+                        ),
+                        with_rate(
+                            c.and_then(|c| c.other.as_ref()),
+                            c.and_then(|c| c.other_success),
+                        ),
+                        delta(c.and_then(|c| c.delta.as_ref())),
+                        opt_p(c.and_then(|c| c.wilcoxon_p)),
+                        opt_p(r.holm_wilcoxon),
+                        c.and_then(|c| c.mcnemar)
+                            .map_or_else(|| "—".into(), |m| format!("{}:{}", m.b, m.c)),
+                        opt_p(c.and_then(|c| c.mcnemar.map(|m| m.p_value))),
+                        opt_p(r.holm_mcnemar),
+                    ]
+                })
+                .collect();
+            b.push(table(
+                &[
+                    "cell",
+                    "corruption",
+                    "q",
+                    "h",
+                    "n",
+                    "clean",
+                    "baseline",
+                    "robust",
+                    "Δ",
+                    "p (W)",
+                    "Holm (W)",
+                    "b:c",
+                    "p (McN)",
+                    "Holm (McN)",
+                ],
+                rows,
+            ));
+        }
+
+        // 2.
+        let f = &self.focus;
+        b.push(Block::Heading(format!(
+            "2. Aggregators on {} ({})",
+            code(&f.cell),
+            f.corruption
+        )));
+        b.push(Block::Para(format!(
+            "Every arm of the cell: success rate with its Wilson {}% interval and mean max \
+             coverage ± standard error over the arm's episodes; against {} on the seeds both \
+             ran: Δ ± paired standard error, Wilcoxon and McNemar p-values, Holm over the arms.",
+            (CONFIDENCE * 100.0).round(),
+            code(&self.baseline)
+        )));
+        let rows = f
+            .rows
+            .iter()
+            .map(|r| {
+                let c = r.vs_baseline.as_ref();
+                vec![
+                    code(&r.arm),
+                    r.n.to_string(),
+                    match r.success_ci {
+                        Some((lo, hi)) => format!(
+                            "{} [{}, {}]",
+                            pct(r.successes as f64 / r.n as f64),
+                            pct(lo),
+                            pct(hi)
+                        ),
+                        None => "—".into(),
+                    },
+                    est(r.coverage.as_ref()),
+                    c.map_or_else(|| "—".into(), |c| c.n.to_string()),
+                    delta(c.and_then(|c| c.delta.as_ref())),
+                    c.map_or_else(|| "—".into(), |c| opt_p(c.wilcoxon_p)),
+                    c.map_or_else(|| "—".into(), |_| opt_p(r.holm_wilcoxon)),
+                    c.map_or_else(|| "—".into(), |c| opt_p(c.mcnemar.map(|m| m.p_value))),
+                    c.map_or_else(|| "—".into(), |_| opt_p(r.holm_mcnemar)),
+                ]
+            })
+            .collect();
+        b.push(table(
+            &[
+                "arm",
+                "n",
+                "success % [95% CI]",
+                "coverage",
+                "pairs",
+                "Δ vs baseline",
+                "p (W)",
+                "Holm (W)",
+                "p (McN)",
+                "Holm (McN)",
+            ],
+            rows,
+        ));
+
+        // 3.
+        b.push(Block::Heading("3. Bracket diagnostics by regime".into()));
+        b.push(Block::Para(
+            "Control steps with at least one corrupted candidate, over the corrupted cells, \
+             grouped by regime: share whose output left the clean bracket, excess beyond it in \
+             bracket widths, steps with an excursion on a zero-width coordinate, share \
+             coinciding with a candidate, and nearest-candidate distance over mean pairwise \
+             distance."
+                .into(),
+        ));
+        if self.brackets.is_empty() {
+            b.push(Block::Para("No bracket data.".into()));
+        } else {
+            let mut rows = Vec::new();
+            for a in &self.brackets {
+                if a.rows.is_empty() {
+                    rows.push(vec![
+                        code(&a.arm),
+                        "—".into(),
+                        "0".into(),
+                        "—".into(),
+                        "—".into(),
+                        "—".into(),
+                        "—".into(),
+                        "—".into(),
+                        "—".into(),
+                        "—".into(),
+                    ]);
+                }
+                for r in &a.rows {
+                    let opt = |v: Option<f64>| v.map_or_else(|| "—".into(), f3);
+                    rows.push(vec![
+                        code(&a.arm),
+                        code(&r.regime.to_string()),
+                        r.steps.to_string(),
+                        format!("{:.1}", r.outside_pct),
+                        f3(r.median_excess),
+                        f3(r.max_excess),
+                        r.zero_width_outside.to_string(),
+                        format!("{:.1}", r.coincide_pct),
+                        opt(r.nearest_median),
+                        opt(r.nearest_p99),
+                    ]);
+                }
+            }
+            b.push(table(
+                &[
+                    "arm",
+                    "regime",
+                    "steps",
+                    "outside %",
+                    "median excess",
+                    "max excess",
+                    "zero-width outside",
+                    "coincide %",
+                    "nearest median",
+                    "nearest p99",
+                ],
+                rows,
+            ));
+        }
+
+        // 4.
+        b.push(Block::Heading("4. Recovered fraction".into()));
+        b.push(Block::Para(format!(
+            "(robust − baseline) / (clean − baseline) on mean max coverage and on success rate: \
+             1 restores the clean baseline, 0 does nothing; n/a where undefined. Baseline {}, \
+             robust {}.",
+            code(&self.baseline),
+            code(&self.robust)
+        )));
+        let mut reasons = Vec::new();
+        let rows = self
+            .main
+            .iter()
+            .map(|r| {
+                let c = r.comparison.as_ref();
+                if let Some(n) = &r.recovered.note {
+                    reasons.push(format!("{}: {n}", code(&r.cell)));
+                }
+                let fr = |v: Option<f64>| v.map_or_else(|| "n/a".into(), |v| format!("{v:.2}"));
+                vec![
+                    code(&r.cell),
+                    r.clean
+                        .as_ref()
+                        .map_or_else(|| "—".into(), |k| f3(k.coverage.mean)),
+                    c.and_then(|c| c.baseline)
+                        .map_or_else(|| "—".into(), |e| f3(e.mean)),
+                    c.and_then(|c| c.other)
+                        .map_or_else(|| "—".into(), |e| f3(e.mean)),
+                    fr(r.recovered.coverage),
+                    fr(r.recovered.success),
+                ]
+            })
+            .collect();
+        b.push(table(
+            &[
+                "cell",
+                "clean",
+                "baseline",
+                "robust",
+                "recovered (coverage)",
+                "recovered (success)",
+            ],
+            rows,
+        ));
+        if !reasons.is_empty() {
+            b.push(Block::Bullets(reasons));
+        }
+
+        // 5.
+        b.push(Block::Heading("5. Distribution of M(τ) and q(τ)".into()));
+        b.push(Block::Para(
+            "Share of control steps (%) by the number of covering chunks M and by the measured \
+             number of corrupted ones q, per ensemble arm, over the corrupted cells."
+                .into(),
+        ));
+        if self.distributions.is_empty() {
+            b.push(Block::Para("No data.".into()));
+        } else {
+            for (name, get) in [
+                (
+                    "M",
+                    (|d: &Distribution| &d.m) as fn(&Distribution) -> &Vec<u64>,
+                ),
+                ("q", |d: &Distribution| &d.q),
+            ] {
+                let width = self
+                    .distributions
+                    .iter()
+                    .map(|d| get(d).len())
+                    .max()
+                    .unwrap_or(0);
+                let cols: Vec<usize> = (0..width)
+                    .filter(|&k| {
+                        self.distributions
+                            .iter()
+                            .any(|d| get(d).get(k).is_some_and(|&v| v > 0))
+                    })
+                    .collect();
+                let mut head = vec!["arm".to_string(), "steps".to_string()];
+                head.extend(cols.iter().map(|k| format!("{name}={k}")));
+                let rows = self
+                    .distributions
+                    .iter()
+                    .map(|d| {
+                        let v = get(d);
+                        let total: u64 = v.iter().sum();
+                        let mut row = vec![code(&d.arm), total.to_string()];
+                        row.extend(cols.iter().map(|&k| {
+                            let x = v.get(k).copied().unwrap_or(0);
+                            if total == 0 {
+                                "—".into()
+                            } else {
+                                pct(x as f64 / total as f64)
+                            }
+                        }));
+                        row
+                    })
+                    .collect();
+                b.push(Block::Table { head, rows });
+            }
+        }
+
+        // 6.
+        b.push(Block::Heading("6. Runner overhead".into()));
+        b.push(Block::Para(
+            "Share of the total wall time by stage (%), over all cells; runner = total − policy \
+             − simulator − render − corruption (ensembler included; ensemble: the ensembler \
+             alone), and the runner's time per control step."
+                .into(),
+        ));
+        let rows = self
+            .overhead
+            .iter()
+            .map(|o| {
+                let t = &o.times;
+                let share = |x: f64| {
+                    if t.total_s > 0.0 {
+                        pct(x / t.total_s)
+                    } else {
+                        "—".into()
+                    }
+                };
+                vec![
+                    code(&o.arm),
+                    o.episodes.to_string(),
+                    o.steps.to_string(),
+                    format!("{:.1}", t.total_s),
+                    share(t.policy_s),
+                    share(t.sim_s),
+                    share(t.render_s),
+                    share(t.corruption_s),
+                    share(o.runner_s),
+                    share(t.ensemble_s),
+                    o.us_per_step()
+                        .map_or_else(|| "—".into(), |u| format!("{u:.1}")),
+                ]
+            })
+            .collect();
+        b.push(table(
+            &[
+                "arm",
+                "episodes",
+                "steps",
+                "total s",
+                "policy %",
+                "sim %",
+                "render %",
+                "corruption %",
+                "runner %",
+                "ensemble %",
+                "runner µs/step",
+            ],
+            rows,
+        ));
+
+        // 7.
+        b.push(Block::Heading("7. Failures".into()));
+        if self.failures.is_empty() {
+            b.push(Block::Para("None.".into()));
+        } else {
+            let rows = self
+                .failures
+                .iter()
+                .map(|e| {
+                    vec![
+                        code(&e.cell),
+                        e.arm.as_deref().map_or_else(|| "—".into(), code),
+                        e.seed.map_or_else(|| "—".into(), |s| s.to_string()),
+                        e.error.clone(),
+                    ]
+                })
+                .collect();
+            b.push(table(&["cell", "arm", "seed", "error"], rows));
+        }
+
+        // 8.
+        b.push(Block::Heading("8. Plots".into()));
+        if self.plots.is_empty() {
+            b.push(Block::Para("No plot (no corrupted cell).".into()));
+        } else {
+            b.push(Block::Plots);
+        }
+        b
+    }
+
+    /// The report as GitHub-flavoured Markdown (plots linked as `plots/<name>.svg`).
+    pub fn markdown(&self) -> String {
+        let mut out = String::new();
+        for block in self.blocks() {
+            match block {
+                Block::Title(t) => {
+                    let _ = writeln!(out, "# {t}");
+                }
+                Block::Heading(t) => {
+                    let _ = writeln!(out, "## {t}");
+                }
+                Block::Para(t) => {
+                    let _ = writeln!(out, "{t}");
+                }
+                Block::Bullets(items) => {
+                    for i in items {
+                        let _ = writeln!(out, "- {}", md_inline(&i));
+                    }
+                }
+                Block::Table { head, rows } => {
+                    let line = |cells: &[String]| {
+                        let cells: Vec<String> = cells.iter().map(|c| md_cell(c)).collect();
+                        format!("| {} |", cells.join(" | "))
+                    };
+                    let _ = writeln!(out, "{}", line(&head));
+                    let rule: Vec<&str> = head
+                        .iter()
+                        .map(|h| if is_text(h) { ":--" } else { "--:" })
+                        .collect();
+                    let _ = writeln!(out, "|{}|", rule.join("|"));
+                    for r in &rows {
+                        let _ = writeln!(out, "{}", line(r));
+                    }
+                }
+                Block::Plots => {
+                    for p in &self.plots {
+                        let _ = writeln!(out, "![{}](plots/{}.svg)", p.title, p.name);
+                    }
+                }
+            }
+            out.push('\n');
+        }
+        while out.ends_with("\n\n") {
+            out.pop();
+        }
+        out
+    }
+
+    /// The report as one self-contained HTML page (plots inlined as SVG, no external
+    /// asset).
+    pub fn html(&self) -> String {
+        let mut out = String::new();
+        out.push_str("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n");
+        let _ = writeln!(out, "<title>mte report: {}</title>", esc(&self.name));
+        out.push_str(concat!(
+            "<style>\n",
+            "body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;max-width:80em;",
+            "margin:2em auto;padding:0 1em;color:#222;line-height:1.45}\n",
+            "h1{font-size:1.6em}h2{font-size:1.25em;margin-top:2em;border-bottom:1px solid #ddd}\n",
+            "table{border-collapse:collapse;margin:.8em 0;font-size:.88em}\n",
+            "th,td{border:1px solid #d0d0d0;padding:.25em .6em;text-align:right;",
+            "font-variant-numeric:tabular-nums}\n",
+            "th{background:#f2f2f2}th.t,td.t{text-align:left}\n",
+            "tr:nth-child(even) td{background:#fafafa}\n",
+            "code{background:#f2f2f2;padding:0 .25em;border-radius:3px;font-size:.95em}\n",
+            "figure{display:inline-block;margin:.5em;vertical-align:top}\n",
+            "figure svg{max-width:100%;height:auto}\n",
+            "figcaption{font-size:.85em;color:#555;text-align:center}\n",
+            "</style>\n</head>\n<body>\n",
+        ));
+        for block in self.blocks() {
+            match block {
+                Block::Title(t) => {
+                    let _ = writeln!(out, "<h1>{}</h1>", html_inline(&t));
+                }
+                Block::Heading(t) => {
+                    let _ = writeln!(out, "<h2>{}</h2>", html_inline(&t));
+                }
+                Block::Para(t) => {
+                    let _ = writeln!(out, "<p>{}</p>", html_inline(&t));
+                }
+                Block::Bullets(items) => {
+                    out.push_str("<ul>\n");
+                    for i in items {
+                        let _ = writeln!(out, "<li>{}</li>", html_inline(&i));
+                    }
+                    out.push_str("</ul>\n");
+                }
+                Block::Table { head, rows } => {
+                    let class = |h: &String| if is_text(h) { " class=\"t\"" } else { "" };
+                    out.push_str("<table>\n<thead><tr>");
+                    for h in &head {
+                        let _ = write!(out, "<th{}>{}</th>", class(h), html_inline(h));
+                    }
+                    out.push_str("</tr></thead>\n<tbody>\n");
+                    for r in &rows {
+                        out.push_str("<tr>");
+                        for (c, h) in r.iter().zip(&head) {
+                            let _ = write!(out, "<td{}>{}</td>", class(h), html_inline(c));
+                        }
+                        out.push_str("</tr>\n");
+                    }
+                    out.push_str("</tbody>\n</table>\n");
+                }
+                Block::Plots => {
+                    for p in &self.plots {
+                        let svg = p.svg.find("<svg").map_or("", |i| &p.svg[i..]);
+                        let _ = writeln!(
+                            out,
+                            "<figure id=\"{}\">\n{}\n<figcaption>{}</figcaption>\n</figure>",
+                            esc(&p.name),
+                            svg.trim_end(),
+                            esc(&p.title)
+                        );
+                    }
+                }
+            }
+        }
+        out.push_str("</body>\n</html>\n");
+        out
+    }
+
+    /// Writes `report.md`, `report.html` and every plot as `plots/<name>.svg` and
+    /// `plots/<name>.png` into `dir` (created if needed); returns the paths written, in that
+    /// order.
+    ///
+    /// # Errors
+    ///
+    /// [`ReportError::Io`] naming the path, [`ReportError::Plot`] if a PNG cannot be drawn.
+    pub fn write(&self, dir: &Path) -> Result<Vec<PathBuf>, ReportError> {
+        let io = |path: &Path| {
+            let path = path.to_path_buf();
+            move |source| ReportError::Io { path, source }
+        };
+        let plots_dir = dir.join("plots");
+        std::fs::create_dir_all(&plots_dir).map_err(io(&plots_dir))?;
+        let mut written = Vec::new();
+        let mut put = |path: PathBuf, bytes: &[u8]| -> Result<(), ReportError> {
+            std::fs::write(&path, bytes).map_err(io(&path))?;
+            written.push(path);
+            Ok(())
+        };
+        put(dir.join("report.md"), self.markdown().as_bytes())?;
+        put(dir.join("report.html"), self.html().as_bytes())?;
+        for p in &self.plots {
+            put(plots_dir.join(format!("{}.svg", p.name)), p.svg.as_bytes())?;
+            put(plots_dir.join(format!("{}.png", p.name)), &p.png()?)?;
+        }
+        Ok(written)
+    }
+}
+
+/// Columns holding text (left-aligned); the others hold numbers (right-aligned).
+fn is_text(header: &str) -> bool {
+    matches!(header, "cell" | "corruption" | "arm" | "regime" | "error")
+}
+
+/// Escapes a Markdown table cell (pipes, line breaks).
+fn md_cell(s: &str) -> String {
+    md_inline(s).replace('|', "\\|")
+}
+
+/// Keeps Markdown text on one line.
+fn md_inline(s: &str) -> String {
+    s.replace(['\r', '\n'], " ")
+}
+
+/// Escapes HTML text.
+fn esc(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            _ => out.push(c),
+        }
+    }
+    out
+}
+
+/// Escapes HTML text and turns balanced `code` spans into `<code>`.
+fn html_inline(s: &str) -> String {
+    let parts: Vec<&str> = s.split('`').collect();
+    if parts.len().is_multiple_of(2) {
+        return esc(s);
+    }
+    parts
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            if i % 2 == 1 {
+                format!("<code>{}</code>", esc(p))
+            } else {
+                esc(p)
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::corruption::{CorruptionSpec, Fault, Schedule};
+    use crate::record::RUN_FORMAT;
+    use mte_ensemble::bracket::RegimeTally;
+
+    const EWM: &str = "ewm:0.01";
+    const MEDIAN: &str = "median";
+    const SEEDS: [u64; 8] = [100, 101, 102, 103, 104, 105, 106, 107];
+    const CLEAN: &str = "pusht_keypoints-clean-h2";
+    const Q1: &str = "pusht_keypoints-blank-burst-q1-h2";
+    const Q2: &str = "pusht_keypoints-blank-burst-q2-h2";
+
+    // Max coverage per seed (SEEDS order); `None`: the episode is missing.
+    const CLEAN_EWM: [f64; 8] = [0.97, 0.92, 0.99, 0.88, 0.96, 0.90, 0.985, 0.93];
+    const CLEAN_MEDIAN: [f64; 8] = [0.96, 0.93, 0.98, 0.89, 0.97, 0.91, 0.99, 0.92];
+    const Q1_EWM: [f64; 8] = [0.60, 0.55, 0.70, 0.42, 0.65, 0.50, 0.75, 0.48];
+    // Median wins every seed, by distinct margins.
+    const Q1_MEDIAN: [f64; 8] = [0.96, 0.81, 0.97, 0.82, 0.95, 0.85, 0.99, 0.85];
+    const Q2_EWM: [f64; 8] = [0.30, 0.35, 0.20, 0.45, 0.25, 0.40, 0.33, 0.28];
+    // Seed 104 ties; seed 107 failed for the median (an error record).
+    const Q2_MEDIAN: [Option<f64>; 7] = [
+        Some(0.50),
+        Some(0.30),
+        Some(0.45),
+        Some(0.60),
+        Some(0.25),
+        Some(0.55),
+        Some(0.48),
+    ];
+
+    fn cell(id: &str, corruption: CorruptionSpec) -> CellSpec {
+        CellSpec {
+            id: id.into(),
+            policy: "assets/policies/pusht_keypoints".into(),
+            corruption,
+            h: 2,
+            arms: vec![EWM.into(), MEDIAN.into()],
+            seeds: SEEDS.to_vec(),
+            max_steps: 300,
+        }
+    }
+
+    fn blank(q: usize) -> CorruptionSpec {
+        CorruptionSpec {
+            fault: Fault::Blank,
+            schedule: Schedule::Burst {
+                q,
+                phase: 0,
+                period: None,
+            },
+        }
+    }
+
+    fn manifest() -> Manifest {
+        Manifest {
+            format: RUN_FORMAT.into(),
+            name: "run-small".into(),
+            git_commit: Some("0123456789abcdef0123456789abcdef01234567".into()),
+            mte_version: "0.1.0".into(),
+            created_unix_s: 1_700_000_000,
+            noise_seed: 7,
+            cells: vec![
+                cell(CLEAN, CorruptionSpec::CLEAN),
+                cell(Q1, blank(1)),
+                cell(Q2, blank(2)),
+            ],
+        }
+    }
+
+    /// A bracket accumulator with `steps` steps in the guaranteed regime and `tie` in the
+    /// tie regime, of which `outside` left the bracket (by `0.1 k` widths).
+    fn bracket(steps: u64, tie: u64, outside: u64) -> BracketAccumulator {
+        let tally = |steps: u64, outside: u64| RegimeTally {
+            steps,
+            outside,
+            zero_width_outside: u64::from(outside > 2),
+            coincide: steps / 4,
+            excess: (0..steps)
+                .map(|k| {
+                    if k < outside {
+                        0.1 * (k + 1) as f64
+                    } else {
+                        0.0
+                    }
+                })
+                .collect(),
+            nearest: (0..steps).map(|k| 0.05 + 0.01 * k as f64).collect(),
+        };
+        BracketAccumulator {
+            tallies: [tally(steps, 0), tally(tie, outside), RegimeTally::default()],
+        }
+    }
+
+    fn episode(cell: &str, arm: &str, seed: u64, cov: f64) -> Line {
+        let corrupted = cell != CLEAN;
+        let median = arm == MEDIAN;
+        Line::Episode(EpisodeRecord {
+            cell: cell.into(),
+            arm: arm.into(),
+            seed,
+            success: cov >= 0.95,
+            max_coverage: cov,
+            steps: 150,
+            queries: 75,
+            corrupted_queries: if corrupted { 20 } else { 0 },
+            m_counts: vec![0, 0, 0, 0, 0, 0, 0, 120, 30],
+            q_counts: if !corrupted {
+                vec![150]
+            } else if cell == Q1 {
+                vec![100, 50]
+            } else {
+                vec![60, 50, 40]
+            },
+            bracket: corrupted.then(|| {
+                if median {
+                    bracket(8, 2, 0)
+                } else {
+                    bracket(6, 4, 3)
+                }
+            }),
+            times: StageTimes {
+                policy_s: 1.5,
+                sim_s: 0.3,
+                render_s: 0.0,
+                corruption_s: if corrupted { 0.02 } else { 0.0 },
+                ensemble_s: if median { 0.012 } else { 0.006 },
+                total_s: 1.9,
+            },
+        })
+    }
+
+    fn lines() -> Vec<Line> {
+        let mut v = Vec::new();
+        for (id, ewm, med) in [
+            (CLEAN, CLEAN_EWM, CLEAN_MEDIAN.map(Some).to_vec()),
+            (Q1, Q1_EWM, Q1_MEDIAN.map(Some).to_vec()),
+            (Q2, Q2_EWM, Q2_MEDIAN.to_vec()),
+        ] {
+            for (i, &seed) in SEEDS.iter().enumerate() {
+                v.push(episode(id, EWM, seed, ewm[i]));
+                match med.get(i).copied().flatten() {
+                    Some(c) => v.push(episode(id, MEDIAN, seed, c)),
+                    None => v.push(Line::Error(ErrorRecord {
+                        cell: id.into(),
+                        arm: Some(MEDIAN.into()),
+                        seed: Some(seed),
+                        error: "policy returned a non-finite chunk | row 3".into(),
+                    })),
+                }
+            }
+        }
+        v
+    }
+
+    fn report() -> Report {
+        build(&manifest(), &lines(), &ReportOptions::default()).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    fn row<'a>(r: &'a Report, cell: &str) -> &'a MainRow {
+        r.main
+            .iter()
+            .find(|x| x.cell == cell)
+            .unwrap_or_else(|| panic!("no row {cell}"))
+    }
+
+    fn fixture_dir() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/run_small")
+    }
+
+    fn updating() -> bool {
+        std::env::var_os("MTE_UPDATE_SNAPSHOTS").is_some_and(|v| v == "1")
+    }
+
+    /// Writes the fixture as a run directory.
+    fn write_fixture(dir: &Path) {
+        let m = manifest();
+        std::fs::create_dir_all(dir.join("cells")).unwrap();
+        let text = serde_json::to_string_pretty(&m).unwrap();
+        std::fs::write(dir.join("manifest.json"), text + "\n").unwrap();
+        let all = lines();
+        for c in &m.cells {
+            let mut out = String::new();
+            for l in &all {
+                let id = match l {
+                    Line::Episode(e) => &e.cell,
+                    Line::Error(e) => &e.cell,
+                };
+                if *id == c.id {
+                    out.push_str(&serde_json::to_string(l).unwrap());
+                    out.push('\n');
+                }
+            }
+            std::fs::write(dir.join("cells").join(format!("{}.jsonl", c.id)), out).unwrap();
+        }
+    }
+
+    /// Reads a run directory: the manifest, then every cell file in manifest order.
+    fn read_run(dir: &Path) -> (Manifest, Vec<Line>) {
+        let text = std::fs::read_to_string(dir.join("manifest.json")).unwrap();
+        let m: Manifest = serde_json::from_str(&text).unwrap();
+        let mut lines = Vec::new();
+        for c in &m.cells {
+            let path = dir.join("cells").join(format!("{}.jsonl", c.id));
+            let text = std::fs::read_to_string(&path).unwrap();
+            for l in text.lines().filter(|l| !l.trim().is_empty()) {
+                lines.push(serde_json::from_str::<Line>(l).unwrap());
+            }
+        }
+        (m, lines)
+    }
+
+    #[test]
+    fn fixture_files_match_the_code_and_markdown_matches_the_snapshot() {
+        let dir = fixture_dir();
+        if updating() {
+            write_fixture(&dir);
+        }
+        let (m, lines) = read_run(&dir);
+        assert_eq!(m, manifest(), "manifest.json differs from the code fixture");
+        let mut expected = lines_sorted(super::tests::lines());
+        let mut got = lines_sorted(lines.clone());
+        expected.dedup();
+        got.dedup();
+        assert_eq!(got, expected, "cell files differ from the code fixture");
+        let md = build(&m, &lines, &ReportOptions::default())
+            .unwrap()
+            .markdown();
+        let snap = dir.join("report.md");
+        if updating() {
+            std::fs::write(&snap, &md).unwrap();
+        }
+        let want = std::fs::read_to_string(&snap).unwrap_or_default();
+        assert!(
+            md == want,
+            "markdown differs from {} (MTE_UPDATE_SNAPSHOTS=1 regenerates it):\n{md}",
+            snap.display()
+        );
+    }
+
+    fn lines_sorted(mut v: Vec<Line>) -> Vec<String> {
+        let mut s: Vec<String> = v
+            .drain(..)
+            .map(|l| serde_json::to_string(&l).unwrap())
+            .collect();
+        s.sort();
+        s
+    }
+
+    #[test]
+    fn all_median_wins_give_the_exact_wilcoxon_p_and_the_mean_difference() {
+        let r = report();
+        let c = row(&r, Q1).comparison.as_ref().unwrap();
+        assert_eq!((c.n, c.unpaired), (8, 0));
+        let w = mte_stats::wilcoxon_signed_rank(&Q1_MEDIAN, &Q1_EWM).unwrap();
+        assert_eq!(c.wilcoxon_p, Some(w.p_value));
+        // Eight positive differences of distinct size: only the all-positive and the
+        // all-negative sign patterns are as extreme, 2 / 2^8.
+        assert!((w.p_value - 2.0 / 256.0).abs() < 1e-15);
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let d = c.delta.unwrap();
+        assert!((d.mean - (mean(&Q1_MEDIAN) - mean(&Q1_EWM))).abs() < 1e-12);
+        let se = mte_stats::mean_and_paired_se(&Q1_MEDIAN, &Q1_EWM)
+            .unwrap()
+            .se;
+        assert_eq!(d.se, Some(se));
+        assert!((c.baseline.unwrap().mean - mean(&Q1_EWM)).abs() < 1e-12);
+        // Median succeeds on 4 seeds where the EWM does not, never the other way round.
+        let mc = c.mcnemar.unwrap();
+        assert_eq!((mc.b, mc.c), (0, 4));
+        assert_eq!(mc.p_value, mte_stats::mcnemar_exact(0, 4).unwrap().p_value);
+        // Holm over the two rows of the main table.
+        let p2 = row(&r, Q2).comparison.as_ref().unwrap().wilcoxon_p.unwrap();
+        let adj = mte_stats::holm(&[w.p_value, p2]).unwrap();
+        assert_eq!(row(&r, Q1).holm_wilcoxon, Some(adj[0]));
+        assert_eq!(row(&r, Q2).holm_wilcoxon, Some(adj[1]));
+        let md = r.markdown();
+        assert!(md.contains("| 0.0078 |"), "{md}");
+        // Clean reference: the EWM on the clean cell.
+        let clean = row(&r, Q1).clean.as_ref().unwrap();
+        assert_eq!(clean.cell, CLEAN);
+        assert!((clean.coverage.mean - mean(&CLEAN_EWM)).abs() < 1e-12);
+        assert!((clean.success - 4.0 / 8.0).abs() < 1e-12);
+        let f = row(&r, Q1).recovered.coverage.unwrap();
+        let want = (mean(&Q1_MEDIAN) - mean(&Q1_EWM)) / (mean(&CLEAN_EWM) - mean(&Q1_EWM));
+        assert!((f - want).abs() < 1e-12);
+    }
+
+    #[test]
+    fn recovered_fraction_is_na_when_clean_equals_baseline() {
+        let mut lines = lines();
+        // The clean EWM episodes score exactly what the EWM scores under attack.
+        for l in &mut lines {
+            if let Line::Episode(e) = l
+                && e.cell == CLEAN
+                && e.arm == EWM
+            {
+                let i = SEEDS.iter().position(|&s| s == e.seed).unwrap();
+                e.max_coverage = Q1_EWM[i];
+                e.success = false;
+            }
+        }
+        let r = build(&manifest(), &lines, &ReportOptions::default()).unwrap();
+        let rec = &row(&r, Q1).recovered;
+        assert_eq!(rec.coverage, None);
+        assert!(
+            rec.note.as_deref().unwrap().contains("undefined"),
+            "{rec:?}"
+        );
+        let md = r.markdown();
+        assert!(!md.contains("NaN") && !md.contains("inf"), "{md}");
+        let line = md
+            .lines()
+            .find(|l| l.starts_with(&format!("| `{Q1}` | 0.581")))
+            .unwrap_or_else(|| panic!("{md}"));
+        assert!(line.ends_with("| n/a | n/a |"), "{line}");
+        // Without a clean cell there is nothing to recover towards.
+        let mut m = manifest();
+        m.cells.remove(0);
+        let lines: Vec<Line> = super::tests::lines()
+            .into_iter()
+            .filter(|l| !matches!(l, Line::Episode(e) if e.cell == CLEAN))
+            .collect();
+        let r = build(&m, &lines, &ReportOptions::default()).unwrap();
+        assert!(
+            r.main
+                .iter()
+                .all(|x| x.recovered.coverage.is_none() && x.clean.is_none())
+        );
+        assert!(!r.markdown().contains("NaN"));
+    }
+
+    #[test]
+    fn unpaired_seeds_are_counted_and_reported() {
+        let r = report();
+        let c = row(&r, Q2).comparison.as_ref().unwrap();
+        assert_eq!((c.n, c.unpaired), (7, 1));
+        let paired_ewm = &Q2_EWM[..7];
+        let med: Vec<f64> = Q2_MEDIAN.iter().flatten().copied().collect();
+        let w = mte_stats::wilcoxon_signed_rank(&med, paired_ewm).unwrap();
+        assert_eq!(c.wilcoxon_p, Some(w.p_value));
+        assert_eq!(w.zeros, 1);
+        assert!(
+            r.notes
+                .iter()
+                .any(|n| n.contains(Q2) && n.contains("1 seed(s)")),
+            "{:?}",
+            r.notes
+        );
+        assert!(r.markdown().contains("1 seed(s) ran only one of"));
+    }
+
+    #[test]
+    fn error_records_are_listed_under_failures() {
+        let r = report();
+        assert_eq!(r.failures.len(), 1);
+        let md = r.markdown();
+        let failures = md.split("## 7. Failures").nth(1).unwrap();
+        assert!(
+            failures.contains(&format!(
+                "| `{Q2}` | `median` | 107 | policy returned a non-finite chunk \\| row 3 |"
+            )),
+            "{failures}"
+        );
+        let html = r.html();
+        assert!(html.contains("policy returned a non-finite chunk | row 3"));
+    }
+
+    #[test]
+    fn write_produces_markdown_html_png_and_svg() {
+        let r = report();
+        assert!(!r.plots.is_empty());
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("report");
+        let files = r.write(&out).unwrap();
+        assert_eq!(files[0], out.join("report.md"));
+        assert_eq!(files[1], out.join("report.html"));
+        assert_eq!(files.len(), 2 + 2 * r.plots.len());
+        let (mut png, mut svg) = (0, 0);
+        for f in &files {
+            let bytes = std::fs::read(f).unwrap();
+            assert!(!bytes.is_empty(), "{}", f.display());
+            match f.extension().and_then(|e| e.to_str()) {
+                Some("png") => {
+                    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n", "{}", f.display());
+                    png += 1;
+                }
+                Some("svg") => {
+                    let text = String::from_utf8(bytes).unwrap();
+                    assert!(text.contains("<svg") && text.contains("</svg>"));
+                    // Text is drawn (axis labels, legend).
+                    assert!(text.contains("<text"), "{}", f.display());
+                    svg += 1;
+                }
+                _ => {}
+            }
+        }
+        assert_eq!((png, svg), (r.plots.len(), r.plots.len()));
+        let names: Vec<&str> = r.plots.iter().map(|p| p.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "coverage-pusht_keypoints-blank-burst-h2",
+                "success-pusht_keypoints-blank-burst-h2",
+                "recovered-pusht_keypoints-blank-h2"
+            ]
+        );
+        // The PNG has text: not every row of the caption band is white.
+        let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+        assert_eq!(html.matches("<svg").count(), r.plots.len());
+        assert!(!html.contains("src=") && !html.contains("href=\"http"));
+    }
+
+    #[test]
+    fn png_rasterises_text_with_the_bundled_font() {
+        let r = report();
+        let png = r.plots[0].png().unwrap();
+        let dec = png::Decoder::new(std::io::Cursor::new(png));
+        let mut reader = dec.read_info().unwrap();
+        let mut buf = vec![0; reader.output_buffer_size()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        assert_eq!((info.width, info.height), plot::SIZE);
+        // The caption band (top 30 rows) holds the title: some dark pixels.
+        let row = info.width as usize * 3;
+        let dark = buf[..30 * row]
+            .chunks(3)
+            .filter(|p| p.iter().all(|&c| c < 128))
+            .count();
+        assert!(dark > 50, "{dark} dark pixels in the caption band");
+    }
+
+    #[test]
+    fn defaults_pick_ewm_median_and_the_first_widest_corrupted_cell() {
+        let r = report();
+        assert_eq!((r.baseline.as_str(), r.robust.as_str()), (EWM, MEDIAN));
+        assert_eq!(r.focus.cell, Q1);
+        assert_eq!(r.focus.rows.len(), 2);
+        assert!(r.focus.rows[0].vs_baseline.is_none());
+        let med = &r.focus.rows[1];
+        assert_eq!((med.n, med.successes), (8, 4));
+        let ci = mte_stats::wilson_interval(4, 8, 0.95).unwrap();
+        assert_eq!(med.success_ci, Some(ci));
+        // One arm against the baseline: Holm changes nothing.
+        let p = med.vs_baseline.as_ref().unwrap().wilcoxon_p;
+        assert_eq!(med.holm_wilcoxon, p);
+        // Swapped roles through the options.
+        let opts = ReportOptions {
+            baseline_arm: Some(MEDIAN.into()),
+            robust_arm: Some(EWM.into()),
+            focus_cell: Some(Q2.into()),
+        };
+        let r = build(&manifest(), &lines(), &opts).unwrap();
+        let c = row(&r, Q1).comparison.as_ref().unwrap();
+        assert!(c.delta.unwrap().mean < 0.0);
+        assert_eq!(r.focus.cell, Q2);
+    }
+
+    #[test]
+    fn bad_options_and_records_are_typed_errors() {
+        let (m, l) = (manifest(), lines());
+        let bad = |opts: ReportOptions| build(&m, &l, &opts).unwrap_err();
+        let e = bad(ReportOptions {
+            baseline_arm: Some("mean".into()),
+            ..Default::default()
+        });
+        assert!(
+            matches!(&e, ReportError::UnknownArm { role: "baseline", arm, .. } if arm == "mean")
+        );
+        assert!(e.to_string().contains("ewm:0.01, median"), "{e}");
+        let e = bad(ReportOptions {
+            robust_arm: Some(EWM.into()),
+            ..Default::default()
+        });
+        assert!(matches!(e, ReportError::SameArm { .. }));
+        let e = bad(ReportOptions {
+            focus_cell: Some("nope".into()),
+            ..Default::default()
+        });
+        assert!(matches!(e, ReportError::UnknownFocusCell { cell } if cell == "nope"));
+
+        let mut l2 = lines();
+        if let Some(Line::Episode(e)) = l2.get_mut(3) {
+            e.max_coverage = f64::NAN;
+        }
+        let e = build(&m, &l2, &ReportOptions::default()).unwrap_err();
+        assert!(
+            matches!(e, ReportError::NonFiniteCoverage { seed: 101, .. }),
+            "{e}"
+        );
+        let mut l3 = lines();
+        if let Some(Line::Episode(e)) = l3.get_mut(0) {
+            e.cell = "elsewhere".into();
+        }
+        let e = build(&m, &l3, &ReportOptions::default()).unwrap_err();
+        assert!(
+            matches!(e, ReportError::RecordOutsideManifest { cell, .. } if cell == "elsewhere")
+        );
+        let empty = Manifest {
+            cells: vec![],
+            ..manifest()
+        };
+        assert!(matches!(
+            build(&empty, &[], &ReportOptions::default()),
+            Err(ReportError::NoCells { .. })
+        ));
+        let mut one = manifest();
+        for c in &mut one.cells {
+            c.arms.truncate(1);
+        }
+        let only_ewm: Vec<Line> = lines()
+            .into_iter()
+            .filter(|l| matches!(l, Line::Episode(e) if e.arm == EWM))
+            .collect();
+        assert!(matches!(
+            build(&one, &only_ewm, &ReportOptions::default()),
+            Err(ReportError::TooFewArms { .. })
+        ));
+    }
+
+    #[test]
+    fn repeated_records_count_once() {
+        let mut l = lines();
+        l.extend(lines().into_iter().take(4));
+        let r = build(&manifest(), &l, &ReportOptions::default()).unwrap();
+        assert_eq!(r.episodes, report().episodes);
+        assert!(r.notes.iter().any(|n| n.starts_with("4 repeated")));
+        assert_eq!(r.main, report().main);
+    }
+
+    #[test]
+    fn brackets_distributions_and_overhead_sum_over_episodes() {
+        let r = report();
+        let med = r.brackets.iter().find(|b| b.arm == MEDIAN).unwrap();
+        // 8 + 7 corrupted median episodes, 8 guaranteed steps each.
+        assert_eq!(med.episodes, 15);
+        assert_eq!(med.rows[0].steps, 15 * 8);
+        assert_eq!(med.rows[1].steps, 15 * 2);
+        let ewm = r.brackets.iter().find(|b| b.arm == EWM).unwrap();
+        assert!((ewm.rows[1].outside_pct - 75.0).abs() < 1e-12);
+        let d = r.distributions.iter().find(|d| d.arm == EWM).unwrap();
+        assert_eq!(d.m[7], 16 * 120);
+        assert_eq!(d.q, vec![8 * 100 + 8 * 60, 8 * 50 + 8 * 50, 8 * 40]);
+        let o = r.overhead.iter().find(|o| o.arm == MEDIAN).unwrap();
+        assert_eq!((o.episodes, o.steps), (23, 23 * 150));
+        let per_step = o.us_per_step().unwrap();
+        let runner = 8.0 * 0.1 + 15.0 * 0.08;
+        assert!((per_step - 1e6 * runner / (23.0 * 150.0)).abs() < 1e-6);
+    }
+
+    #[test]
+    fn recovered_plot_uses_the_attack_budget_when_two_cells_have_one() {
+        let mut m = manifest();
+        let occluder = |size| CorruptionSpec {
+            fault: Fault::Occluder { size },
+            schedule: Schedule::Burst {
+                q: 2,
+                phase: 0,
+                period: None,
+            },
+        };
+        m.cells[1] = cell("occ-24", occluder(24));
+        m.cells[2] = cell("occ-16", occluder(16));
+        let lines: Vec<Line> = lines()
+            .into_iter()
+            .map(|mut l| {
+                if let Line::Episode(e) = &mut l {
+                    e.cell = match e.cell.as_str() {
+                        Q1 => "occ-24".into(),
+                        Q2 => "occ-16".into(),
+                        c => c.into(),
+                    };
+                }
+                l
+            })
+            .filter(|l| !matches!(l, Line::Error(_)))
+            .collect();
+        let r = build(&m, &lines, &ReportOptions::default()).unwrap();
+        let p = r
+            .plots
+            .iter()
+            .find(|p| p.name.starts_with("recovered-"))
+            .unwrap();
+        assert_eq!(p.spec.x_label, "attack budget");
+        assert!(!p.spec.integer_x);
+        let xs: Vec<f64> = p.spec.series[0].points.iter().map(|q| q.x).collect();
+        assert_eq!(xs, [16.0, 24.0]);
+        let y24 = row(&r, "occ-24").recovered.coverage.unwrap();
+        assert_eq!(p.spec.series[0].points[1].y, y24);
+        // Two occluder sizes: two coverage-against-q plots (one point each plus clean).
+        assert_eq!(
+            r.plots
+                .iter()
+                .filter(|p| p.name.starts_with("coverage-"))
+                .count(),
+            2
+        );
+    }
+
+    #[test]
+    fn p_values_and_numbers_are_formatted_with_fixed_digits() {
+        assert_eq!(fmt_p(1.0), "1.0");
+        assert_eq!(fmt_p(0.5), "0.50");
+        assert_eq!(fmt_p(0.05), "0.050");
+        assert_eq!(fmt_p(0.0078125), "0.0078");
+        assert_eq!(fmt_p(0.001), "0.0010");
+        assert_eq!(fmt_p(2.2e-4), "2.2e-4");
+        assert_eq!(fmt_p(3.2e-6), "3.2e-6");
+        assert_eq!(fmt_p(0.0), "< 1e-300");
+        assert_eq!(f3(-0.0001), "0.000");
+        assert_eq!(s3(0.25), "+0.250");
+        assert_eq!(s3(-0.0001), "+0.000");
+        assert_eq!(html_inline("a `b<c` d"), "a <code>b&lt;c</code> d");
+        assert_eq!(html_inline("odd ` tick"), "odd ` tick");
+        assert_eq!(policy_label("a/b/pusht/"), "pusht");
+        assert_eq!(slug("a b/c"), "a_b_c");
+    }
+}

@@ -52,6 +52,9 @@ pub enum Command {
     Report(ReportArgs),
     /// Synthetic stress test: what corrupted queries do to each aggregator (no simulator).
     Synthetic(SyntheticArgs),
+    /// Adversarial attacks.
+    #[command(subcommand)]
+    Attack(AttackCommand),
     /// Work with recorded chunk streams.
     #[command(subcommand)]
     Ensemble(EnsembleCommand),
@@ -443,4 +446,47 @@ pub struct ReportArgs {
     /// Cell of the aggregator table (default: the corrupted cell with most arms).
     #[arg(long)]
     pub cell: Option<String>,
+}
+
+/// `mte attack ...`
+#[derive(Debug, Subcommand)]
+pub enum AttackCommand {
+    /// Sweep PGD's budget and step size against the undefended arm until the attack stops
+    /// improving (the paper's calibration).
+    Calibrate(CalibrateArgs),
+}
+
+/// `mte attack calibrate`
+#[derive(Debug, Args)]
+pub struct CalibrateArgs {
+    /// Policy checkpoint directory.
+    #[arg(long, value_name = "DIR")]
+    pub policy: PathBuf,
+    /// Paired episodes per point (seeds 100000, ...).
+    #[arg(long, default_value_t = 10)]
+    pub episodes: usize,
+    /// Budgets (iterations), tried in increasing order.
+    #[arg(long, value_delimiter = ',', default_value = "5,20,50,200,500")]
+    pub iterations: Vec<usize>,
+    /// Step sizes.
+    #[arg(long, value_delimiter = ',', default_value = "0.001875")]
+    pub steps: Vec<f64>,
+    /// L-infinity radius (pixels in [0, 1], or normalised keypoints).
+    #[arg(long, default_value_t = 0.03)]
+    pub eps: f64,
+    /// Undefended arm.
+    #[arg(long, default_value = "ewm:0.01")]
+    pub arm: String,
+    /// Burst length q.
+    #[arg(long, default_value_t = 2)]
+    pub q: usize,
+    /// Query stride h.
+    #[arg(long, default_value_t = 2)]
+    pub stride: usize,
+    /// Stop a step size when a larger budget lowers mean coverage by less than this.
+    #[arg(long, default_value_t = 0.01)]
+    pub tolerance: f64,
+    /// Step limit per episode.
+    #[arg(long, default_value_t = 300)]
+    pub max_steps: usize,
 }

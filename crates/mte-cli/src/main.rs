@@ -12,7 +12,8 @@ use std::process::ExitCode;
 use clap::Parser;
 
 use crate::args::{
-    Cli, Command, DataCommand, EnsembleCommand, EvalCommand, SimCommand, TrainCommand,
+    AttackCommand, Cli, Command, DataCommand, EnsembleCommand, EvalCommand, SimCommand,
+    TrainCommand,
 };
 
 fn main() -> ExitCode {
@@ -22,6 +23,7 @@ fn main() -> ExitCode {
         Command::Sweep(a) => cmd::sweep::run(&cli, a),
         Command::Report(a) => cmd::report::run(&cli, a),
         Command::Synthetic(a) => cmd::synthetic::run(&cli, a),
+        Command::Attack(AttackCommand::Calibrate(a)) => cmd::attack::calibrate(&cli, a),
         Command::Ensemble(EnsembleCommand::Replay(a)) => cmd::replay::run(&cli, a),
         Command::Sim(SimCommand::Render(a)) => cmd::sim::render(&cli, a),
         Command::Sim(SimCommand::Rollout(a)) => cmd::sim::rollout(&cli, a),

@@ -388,3 +388,33 @@ fn sweep_flags_and_specs_are_checked() {
         .code(2)
         .stderr(predicate::str::contains("not an mte run directory"));
 }
+
+#[test]
+fn attack_calibrate_reports_clean_and_attacked_rows() {
+    let out = mte()
+        .args([
+            "attack",
+            "calibrate",
+            "--episodes",
+            "1",
+            "--iterations",
+            "1",
+            "--max-steps",
+            "6",
+        ])
+        .args(["--format", "json", "--policy"])
+        .arg(bundled())
+        .assert()
+        .success();
+    let v: serde_json::Value = serde_json::from_slice(&out.get_output().stdout).unwrap();
+    let rows = v["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 2);
+    assert_eq!(rows[0]["iterations"], 0);
+    assert_eq!(rows[1]["iterations"], 1);
+    mte()
+        .args(["attack", "calibrate", "--arm", "medain", "--policy"])
+        .arg(bundled())
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("--arm"));
+}

@@ -356,3 +356,59 @@ fn pgd_bursts_attack_a_real_diffusion_policy_reproducibly() -> TestResult {
     assert!(e.is_err_and(|e| e.to_string().contains("PGD")));
     Ok(())
 }
+
+#[test]
+fn calibration_runs_budgets_in_order_and_stops_when_the_attack_stops_improving() -> TestResult {
+    use candle_core::{DType, Device};
+    use mte_eval::calibrate::{CalibrationSpec, calibrate};
+    use mte_policy::config::{DiffusionConfig, ObsKind};
+    use mte_policy::{DiffusionPolicy, Stats, StatsMap};
+    let c = DiffusionConfig::cpu(ObsKind::Keypoints).with_overrides(&serde_json::json!({
+        "down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8,
+        "num_inference_steps": 2
+    }))?;
+    let mm = |n: usize| Stats {
+        min: vec![0.0; n],
+        max: vec![512.0; n],
+        mean: vec![256.0; n],
+        std: vec![128.0; n],
+    };
+    let mut stats = StatsMap::new();
+    stats.insert("observation.state".into(), mm(2));
+    stats.insert("observation.environment_state".into(), mm(16));
+    stats.insert("action".into(), mm(2));
+    let vm = candle_nn::VarMap::new();
+    let vb = mte_policy::init::seeded_var_builder(&vm, 1, DType::F32, &Device::Cpu);
+    let p = DiffusionPolicy::new(c, stats, vb)?;
+    let spec = CalibrationSpec {
+        seeds: vec![100_000, 100_001],
+        iterations: vec![2, 1, 3],
+        steps: vec![0.01],
+        // A tolerance no attack can beat: the sweep stops at the second budget.
+        tolerance: 10.0,
+        max_steps: 12,
+        ..CalibrationSpec::default()
+    };
+    let rows = calibrate(&p, NEEDS, &spec, &Silent)?;
+    assert_eq!(rows.len(), 3, "clean, 1 and 2 iterations, then stop");
+    assert_eq!(rows[0].iterations, 0);
+    assert_eq!((rows[1].iterations, rows[2].iterations), (1, 2));
+    assert!(!rows[1].stopped && rows[2].stopped);
+    assert!(
+        rows.iter()
+            .all(|r| (0.0..=1.0).contains(&r.mean_coverage) && r.n == 2)
+    );
+    assert!(
+        calibrate(
+            &p,
+            NEEDS,
+            &CalibrationSpec {
+                seeds: vec![],
+                ..spec
+            },
+            &Silent
+        )
+        .is_err()
+    );
+    Ok(())
+}

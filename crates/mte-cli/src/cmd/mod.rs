@@ -1,5 +1,6 @@
 //! One module per subcommand: arguments in, library call, output out.
 
+pub mod attack;
 pub mod data;
 pub mod demo;
 pub mod eval;

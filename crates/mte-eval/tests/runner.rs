@@ -306,26 +306,8 @@ fn the_shipped_sweep_specs_parse() -> TestResult {
 
 #[test]
 fn pgd_bursts_attack_a_real_diffusion_policy_reproducibly() -> TestResult {
-    use candle_core::{DType, Device};
-    use mte_policy::config::{DiffusionConfig, ObsKind};
-    use mte_policy::{DiffusionPolicy, PgdConfig, Stats, StatsMap};
-    let c = DiffusionConfig::cpu(ObsKind::Keypoints).with_overrides(&serde_json::json!({
-        "down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8,
-        "num_inference_steps": 2
-    }))?;
-    let mm = |n: usize| Stats {
-        min: vec![0.0; n],
-        max: vec![512.0; n],
-        mean: vec![256.0; n],
-        std: vec![128.0; n],
-    };
-    let mut stats = StatsMap::new();
-    stats.insert("observation.state".into(), mm(2));
-    stats.insert("observation.environment_state".into(), mm(16));
-    stats.insert("action".into(), mm(2));
-    let vm = candle_nn::VarMap::new();
-    let vb = mte_policy::init::seeded_var_builder(&vm, 1, DType::F32, &Device::Cpu);
-    let p = DiffusionPolicy::new(c, stats, vb)?;
+    use mte_policy::PgdConfig;
+    let p = tiny_diffusion_policy()?;
     let pgd = CorruptionSpec {
         fault: Fault::Pgd(PgdConfig {
             iterations: 2,
@@ -359,27 +341,8 @@ fn pgd_bursts_attack_a_real_diffusion_policy_reproducibly() -> TestResult {
 
 #[test]
 fn calibration_runs_budgets_in_order_and_stops_when_the_attack_stops_improving() -> TestResult {
-    use candle_core::{DType, Device};
     use mte_eval::calibrate::{CalibrationSpec, calibrate};
-    use mte_policy::config::{DiffusionConfig, ObsKind};
-    use mte_policy::{DiffusionPolicy, Stats, StatsMap};
-    let c = DiffusionConfig::cpu(ObsKind::Keypoints).with_overrides(&serde_json::json!({
-        "down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8,
-        "num_inference_steps": 2
-    }))?;
-    let mm = |n: usize| Stats {
-        min: vec![0.0; n],
-        max: vec![512.0; n],
-        mean: vec![256.0; n],
-        std: vec![128.0; n],
-    };
-    let mut stats = StatsMap::new();
-    stats.insert("observation.state".into(), mm(2));
-    stats.insert("observation.environment_state".into(), mm(16));
-    stats.insert("action".into(), mm(2));
-    let vm = candle_nn::VarMap::new();
-    let vb = mte_policy::init::seeded_var_builder(&vm, 1, DType::F32, &Device::Cpu);
-    let p = DiffusionPolicy::new(c, stats, vb)?;
+    let p = tiny_diffusion_policy()?;
     let spec = CalibrationSpec {
         seeds: vec![100_000, 100_001],
         iterations: vec![2, 1, 3],
@@ -411,4 +374,33 @@ fn calibration_runs_budgets_in_order_and_stops_when_the_attack_stops_improving()
         .is_err()
     );
     Ok(())
+}
+
+/// A randomly initialised (seeded) keypoint Diffusion Policy small enough for tests.
+fn tiny_diffusion_policy() -> Result<mte_policy::DiffusionPolicy, Box<dyn std::error::Error>> {
+    use mte_policy::config::{DiffusionConfig, ObsKind};
+    use mte_policy::{Stats, StatsMap};
+    let c = DiffusionConfig::cpu(ObsKind::Keypoints).with_overrides(&serde_json::json!({
+        "down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8,
+        "num_inference_steps": 2
+    }))?;
+    let mm = |n: usize| Stats {
+        min: vec![0.0; n],
+        max: vec![512.0; n],
+        mean: vec![256.0; n],
+        std: vec![128.0; n],
+    };
+    let mut stats = StatsMap::new();
+    stats.insert("observation.state".into(), mm(2));
+    stats.insert("observation.environment_state".into(), mm(16));
+    stats.insert("action".into(), mm(2));
+    // The VarMap only registers the variables; the policy holds its own tensors.
+    let vm = candle_nn::VarMap::new();
+    let vb = mte_policy::init::seeded_var_builder(
+        &vm,
+        1,
+        candle_core::DType::F32,
+        &candle_core::Device::Cpu,
+    );
+    Ok(mte_policy::DiffusionPolicy::new(c, stats, vb)?)
 }

@@ -57,12 +57,7 @@ fn unet_forward(bencher: divan::Bencher, preset: &str) {
 #[divan::bench(args = ["paper", "cpu-image", "cpu-keypoints"], sample_count = 3)]
 fn chunk(bencher: divan::Bencher, preset: &str) {
     let (p, _vm) = policy(preset);
-    let obs = Observation {
-        state: vec![200.0, 300.0],
-        env_state: (preset == "cpu-keypoints").then(|| vec![250.0; 16]),
-        image: (preset != "cpu-keypoints").then(|| vec![128u8; 96 * 96 * 3]),
-    };
-    let hist = vec![obs.clone(), obs];
+    let hist = history(preset);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     bencher.bench_local(|| p.predict(&hist, &mut rng).expect("chunk"));
 }
@@ -73,12 +68,7 @@ fn chunk(bencher: divan::Bencher, preset: &str) {
 #[divan::bench(args = ["cpu-image", "cpu-keypoints"], sample_count = 5)]
 fn pgd_iteration(bencher: divan::Bencher, preset: &str) {
     let (p, _vm) = policy(preset);
-    let obs = Observation {
-        state: vec![200.0, 300.0],
-        env_state: (preset == "cpu-keypoints").then(|| vec![250.0; 16]),
-        image: (preset != "cpu-keypoints").then(|| vec![128u8; 96 * 96 * 3]),
-    };
-    let hist = vec![obs.clone(), obs];
+    let hist = history(preset);
     let x0 = Tensor::randn(0f32, 0.5, (1, 16, 2), &Device::Cpu).expect("x0");
     let cfg = mte_policy::PgdConfig {
         iterations: 1,
@@ -86,4 +76,14 @@ fn pgd_iteration(bencher: divan::Bencher, preset: &str) {
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     bencher.bench_local(|| p.pgd_perturb(&hist, &x0, &cfg, &mut rng).expect("pgd"));
+}
+
+/// Two identical observations of the kind `preset` reads.
+fn history(preset: &str) -> Vec<Observation> {
+    let obs = Observation {
+        state: vec![200.0, 300.0],
+        env_state: (preset == "cpu-keypoints").then(|| vec![250.0; 16]),
+        image: (preset != "cpu-keypoints").then(|| vec![128u8; 96 * 96 * 3]),
+    };
+    vec![obs.clone(), obs]
 }

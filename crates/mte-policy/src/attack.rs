@@ -126,18 +126,23 @@ impl DiffusionPolicy {
         let (tp, d) = (self.config().horizon, self.action_normalizer().dim());
         let n = cfg.samples;
         let n_train = self.config().num_train_timesteps;
+        // The clean batch with the perturbed channel replaced by `x`.
+        let with_perturbed = |x: Vec<f32>| -> Result<ObsBatch, PolicyError> {
+            let xt = Tensor::from_vec(x, shape.clone(), self.device())?.to_dtype(dtype)?;
+            let (env, image) = if is_image {
+                (clean.env.clone(), Some(xt))
+            } else {
+                (Some(xt), None)
+            };
+            Ok(ObsBatch {
+                state: clean.state.clone(),
+                env,
+                image,
+            })
+        };
         let (mut first, mut last) = (f32::NAN, f32::NAN);
         for it in 0..cfg.iterations {
-            let xt = Tensor::from_vec(x.clone(), shape.clone(), self.device())?.to_dtype(dtype)?;
-            let batch = ObsBatch {
-                state: clean.state.clone(),
-                env: if is_image {
-                    clean.env.clone()
-                } else {
-                    Some(xt.clone())
-                },
-                image: if is_image { Some(xt) } else { None },
-            };
+            let batch = with_perturbed(x.clone())?;
             let timesteps: Vec<usize> = (0..n)
                 .map(|_| attack_rng.random_range(0..n_train))
                 .collect();
@@ -166,17 +171,7 @@ impl DiffusionPolicy {
             }
             project(&mut x);
         }
-        let xt = Tensor::from_vec(x, shape, self.device())?.to_dtype(dtype)?;
-        let batch = ObsBatch {
-            state: clean.state.clone(),
-            env: if is_image {
-                clean.env.clone()
-            } else {
-                Some(xt.clone())
-            },
-            image: if is_image { Some(xt) } else { None },
-        };
-        Ok((batch, first, last))
+        Ok((with_perturbed(x)?, first, last))
     }
 
     /// Attack one query: sample the clean chunk as `x_0` (with `sample_rng`), run PGD

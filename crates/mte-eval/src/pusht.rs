@@ -388,13 +388,16 @@ pub fn run_episode(
             newest_corrupted = corrupted;
             // Common-mode bias leaves every candidate equally shifted: no clean bracket.
             let flag = corrupted && bias.is_none();
+            let t = Instant::now();
             if let Some(o) = oracle.as_mut() {
                 o.live.push((steps as u64, chunk.clone(), flag));
             } else if let Some(e) = ens.as_mut() {
                 e.insert(steps as u64, &chunk, QueryMeta { corrupted: flag })?;
             }
+            times.ensemble_s += t.elapsed().as_secs_f64();
         }
         let tau = steps as u64;
+        let t_ens = Instant::now();
         let (m, q) = match (oracle.as_mut(), ens.as_mut(), spec.execution) {
             (Some(o), _, Execution::Ensemble(agg)) => {
                 let t = Instant::now();
@@ -431,6 +434,7 @@ pub fn run_episode(
                 (1, usize::from(newest_corrupted && bias.is_none()))
             }
         };
+        times.ensemble_s += t_ens.elapsed().as_secs_f64();
         bump(&mut m_counts, m);
         bump(&mut q_counts, q);
         if let (Some(b), true) = (bias, newest_corrupted) {

@@ -69,7 +69,8 @@ pub struct StageTimes {
     pub render_s: f64,
     /// Corrupting observations or candidates (attacks included).
     pub corruption_s: f64,
-    /// Ensembling and bracket diagnostics.
+    /// Ensembling and bracket diagnostics (part of the runner's overhead; for the oracle
+    /// attack this also includes its candidate rewriting, which is counted as corruption).
     pub ensemble_s: f64,
     /// Whole episode.
     pub total_s: f64,

@@ -123,6 +123,9 @@ fn covering_counts_follow_the_geometry() -> TestResult {
     assert_eq!(r.queries, r.steps.div_ceil(2));
     assert_eq!(r.q_counts, vec![r.steps as u64]);
     assert_eq!(r.bracket, None, "no diagnostics on clean cells");
+    let t = r.times;
+    assert!(t.ensemble_s > 0.0 && t.total_s > t.policy_s + t.sim_s + t.ensemble_s);
+    assert!(t.overhead_s() >= t.ensemble_s * 0.5, "{t:?}");
     Ok(())
 }
 

@@ -81,6 +81,18 @@ pub struct ObsNeeds {
     pub image: Option<(usize, usize)>,
 }
 
+impl ObsNeeds {
+    /// What a Diffusion Policy with this configuration reads.
+    pub fn of(config: &mte_policy::DiffusionConfig) -> Self {
+        Self {
+            env_state: config
+                .vector_dim(mte_policy::config::FeatureType::Env)
+                .is_some(),
+            image: config.image_shape().map(|[_, h, w]| (w, h)),
+        }
+    }
+}
+
 /// Errors of a rollout.
 #[derive(Debug, thiserror::Error)]
 pub enum RolloutError {
@@ -292,18 +304,6 @@ pub fn run_episode(
     env.reset(spec.seed, spec.stream)?;
     times.sim_s += t.elapsed().as_secs_f64();
     let mut renderer = spec.needs.image.map(|_| Renderer::new(env.goal()));
-    let mut ens = match spec.execution {
-        Execution::Ensemble(a) => Some(TemporalEnsembler::with_options(
-            geometry,
-            d,
-            a,
-            EnsemblerOptions {
-                lookahead: None,
-                bracket_diagnostics: !clean,
-            },
-        )?),
-        Execution::OpenLoop => None,
-    };
     let mut oracle = match (fault, spec.execution) {
         (Fault::Oracle { mode }, Execution::Ensemble(_)) if !clean => {
             let mut r = query_rng(spec.noise_seed, spec.seed, 0, 2);
@@ -328,6 +328,20 @@ pub fn run_episode(
         }
         _ => None,
     };
+    // Oracle attacks assemble their own candidates; every other ensemble arm uses the
+    // streaming ensembler.
+    let mut ens = match (spec.execution, &oracle) {
+        (Execution::Ensemble(a), None) => Some(TemporalEnsembler::with_options(
+            geometry,
+            d,
+            a,
+            EnsemblerOptions {
+                lookahead: None,
+                bracket_diagnostics: !clean,
+            },
+        )?),
+        _ => None,
+    };
     let bias: Option<[f32; 2]> = match *fault {
         Fault::CommonMode {
             magnitude,
@@ -345,7 +359,9 @@ pub fn run_episode(
     let mut out = vec![0f32; d];
     let mut max_coverage = env.coverage();
     let (mut queries, mut corrupted_queries) = (0usize, 0usize);
-    let mut newest_corrupted = false;
+    // Whether the newest query was corrupted, and whether its candidates count as corrupted
+    // (not under common-mode bias, which shifts every candidate alike: no clean bracket).
+    let (mut newest_corrupted, mut newest_flagged) = (false, false);
     let (mut m_counts, mut q_counts) = (Vec::new(), Vec::new());
     let mut bracket = BracketAccumulator::default();
     let m_min = geometry.m_min();
@@ -386,13 +402,18 @@ pub fn run_episode(
             queries += 1;
             corrupted_queries += usize::from(corrupted);
             newest_corrupted = corrupted;
-            // Common-mode bias leaves every candidate equally shifted: no clean bracket.
-            let flag = corrupted && bias.is_none();
+            newest_flagged = corrupted && bias.is_none();
             let t = Instant::now();
             if let Some(o) = oracle.as_mut() {
-                o.live.push((steps as u64, chunk.clone(), flag));
+                o.live.push((steps as u64, chunk.clone(), newest_flagged));
             } else if let Some(e) = ens.as_mut() {
-                e.insert(steps as u64, &chunk, QueryMeta { corrupted: flag })?;
+                e.insert(
+                    steps as u64,
+                    &chunk,
+                    QueryMeta {
+                        corrupted: newest_flagged,
+                    },
+                )?;
             }
             times.ensemble_s += t.elapsed().as_secs_f64();
         }
@@ -431,7 +452,7 @@ pub fn run_episode(
             _ => {
                 let r = t_o - 1 + k;
                 out.copy_from_slice(&chunk[r * d..(r + 1) * d]);
-                (1, usize::from(newest_corrupted && bias.is_none()))
+                (1, usize::from(newest_flagged))
             }
         };
         times.ensemble_s += t_ens.elapsed().as_secs_f64();
@@ -465,7 +486,7 @@ pub fn run_episode(
         corrupted_queries,
         m_counts,
         q_counts,
-        bracket: (!clean && ens.is_some()).then_some(bracket),
+        bracket: (!clean && matches!(spec.execution, Execution::Ensemble(_))).then_some(bracket),
         times,
     })
 }

@@ -30,7 +30,6 @@ use std::path::{Path, PathBuf};
 use std::str::FromStr;
 use std::sync::Mutex;
 
-use mte_policy::config::FeatureType;
 use mte_sim::ResetStream;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -329,11 +328,7 @@ impl PolicySource for CheckpointSource {
     ) -> Result<(Box<dyn mte_policy::ChunkPolicy + Send + Sync>, ObsNeeds), String> {
         let p = mte_policy::checkpoint::load(Path::new(path), &candle_core::Device::Cpu)
             .map_err(|e| format!("loading policy {path}: {e}"))?;
-        let c = p.config();
-        let needs = ObsNeeds {
-            env_state: c.vector_dim(FeatureType::Env).is_some(),
-            image: c.image_shape().map(|[_, h, w]| (w, h)),
-        };
+        let needs = ObsNeeds::of(p.config());
         Ok((Box::new(p), needs))
     }
 }

@@ -92,8 +92,18 @@ impl DiffusionPolicy {
         cfg: &PgdConfig,
         attack_rng: &mut dyn RngCore,
     ) -> Result<(ObsBatch, f32, f32), PolicyError> {
+        self.pgd_perturb_batch(&self.obs_batch(&[history])?, x0, cfg, attack_rng)
+    }
+
+    /// [`DiffusionPolicy::pgd_perturb`] from the clean observation batch.
+    fn pgd_perturb_batch(
+        &self,
+        clean: &ObsBatch,
+        x0: &Tensor,
+        cfg: &PgdConfig,
+        attack_rng: &mut dyn RngCore,
+    ) -> Result<(ObsBatch, f32, f32), PolicyError> {
         cfg.validate()?;
-        let clean = self.obs_batch(&[history])?;
         let (target, is_image) = match (&clean.image, &clean.env) {
             (Some(img), _) => (img.clone(), true),
             (None, Some(env)) => (env.clone(), false),
@@ -185,8 +195,8 @@ impl DiffusionPolicy {
         sample_rng: &mut dyn RngCore,
     ) -> Result<PgdOutcome, PolicyError> {
         let clean = self.obs_batch(&[history])?;
-        let x0 = self.sample_batch(&clean, sample_rng)?;
-        let (adv, loss_first, loss_last) = self.pgd_perturb(history, &x0, cfg, attack_rng)?;
+        let x0 = self.sample_chunk_normalized(&clean, sample_rng)?;
+        let (adv, loss_first, loss_last) = self.pgd_perturb_batch(&clean, &x0, cfg, attack_rng)?;
         let max_perturbation = match (&adv.image, &clean.image, &adv.env, &clean.env) {
             (Some(a), Some(c), _, _) | (None, None, Some(a), Some(c)) => (a - c)?
                 .abs()?
@@ -196,29 +206,12 @@ impl DiffusionPolicy {
                 .to_scalar::<f32>()?,
             _ => 0.0,
         };
-        let x = self.sample_batch(&adv, sample_rng)?;
-        let mut chunk: Vec<f32> = x.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
-        self.action_normalizer().unnormalize(&mut chunk);
-        if chunk.iter().any(|v| !v.is_finite()) {
-            return Err(PolicyError::Input {
-                name: "action",
-                reason: "sampling produced a non-finite action".into(),
-            });
-        }
+        let chunk = self.unnormalized_chunk(&self.sample_chunk_normalized(&adv, sample_rng)?)?;
         Ok(PgdOutcome {
             chunk,
             loss_first,
             loss_last,
             max_perturbation,
         })
-    }
-
-    /// One normalised chunk `(1, horizon, d)` sampled from an observation batch.
-    fn sample_batch(&self, obs: &ObsBatch, rng: &mut dyn RngCore) -> Result<Tensor, PolicyError> {
-        let cond = self.global_cond(obs)?;
-        let (tp, d) = (self.config().horizon, self.action_normalizer().dim());
-        let init: Vec<f32> = (0..tp * d).map(|_| StandardNormal.sample(rng)).collect();
-        let noise = Tensor::from_vec(init, (1, tp, d), self.device())?.to_dtype(cond.dtype())?;
-        self.sample_normalized(&cond, noise, rng)
     }
 }

@@ -374,13 +374,28 @@ impl DiffusionPolicy {
         history: &[Observation],
         rng: &mut dyn RngCore,
     ) -> Result<Vec<f32>, PolicyError> {
-        let obs = self.obs_batch(&[history])?;
-        let cond = self.global_cond(&obs)?;
+        let x = self.sample_chunk_normalized(&self.obs_batch(&[history])?, rng)?;
+        self.unnormalized_chunk(&x)
+    }
+
+    /// One normalised chunk `(1, horizon, d)` sampled from a one-history observation batch:
+    /// the initial noise, then the per-step variance noise, both drawn from `rng`.
+    pub fn sample_chunk_normalized(
+        &self,
+        obs: &ObsBatch,
+        rng: &mut dyn RngCore,
+    ) -> Result<Tensor, PolicyError> {
+        let cond = self.global_cond(obs)?;
         let (tp, d) = (self.config.horizon, self.config.action_dim()?);
         let init: Vec<f32> = (0..tp * d).map(|_| StandardNormal.sample(rng)).collect();
-        let noise = Tensor::from_vec(init, (1, tp, d), &self.device)?;
-        let x = self.sample_normalized(&cond, noise, rng)?;
-        let mut chunk: Vec<f32> = x.flatten_all()?.to_vec1()?;
+        let noise = Tensor::from_vec(init, (1, tp, d), &self.device)?.to_dtype(cond.dtype())?;
+        self.sample_normalized(&cond, noise, rng)
+    }
+
+    /// A sampled normalised chunk as unnormalised actions, row-major; a non-finite action is
+    /// an error.
+    pub fn unnormalized_chunk(&self, x: &Tensor) -> Result<Vec<f32>, PolicyError> {
+        let mut chunk: Vec<f32> = x.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
         self.action_norm.unnormalize(&mut chunk);
         if chunk.iter().any(|v| !v.is_finite()) {
             return Err(PolicyError::Input {

@@ -9,7 +9,6 @@ use mte_eval::corruption::CorruptionSpec;
 use mte_eval::pusht::{EpisodeSpec, Execution, ObsNeeds, run_episode};
 use mte_policy::ChunkPolicy as _;
 use mte_policy::checkpoint;
-use mte_policy::config::FeatureType;
 
 use crate::args::{Cli, EvalPolicyArgs, Format};
 use crate::progress::Bar;
@@ -25,11 +24,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
     })?;
     let p = checkpoint::load(&a.checkpoint, &Device::Cpu)
         .with_context(|| format!("loading {}", a.checkpoint.display()))?;
-    let c = p.config();
-    let needs = ObsNeeds {
-        env_state: c.vector_dim(FeatureType::Env).is_some(),
-        image: c.image_shape().map(|[_, h, w]| (w, h)),
-    };
+    let needs = ObsNeeds::of(p.config());
     let bar = Bar::new(!cli.no_progress && !cli.quiet);
     bar.start("episodes", a.episodes as u64);
     let t0 = std::time::Instant::now();

@@ -4,6 +4,8 @@
 //! peer's 1-thread figures.
 //!
 //! `RAYON_NUM_THREADS=1 cargo bench -p mte-policy --bench unet`
+//!
+//! Also: one PGD iteration, and the image encoder's forward + backward at training size.
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
@@ -76,6 +78,24 @@ fn pgd_iteration(bencher: divan::Bencher, preset: &str) {
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     bencher.bench_local(|| p.pgd_perturb(&hist, &x0, &cfg, &mut rng).expect("pgd"));
+}
+
+/// The image encoder's share of one training step: forward and backward of its features for
+/// a batch of 64 windows x 2 observation steps = 128 crops of 84 x 84 (the `cpu` preset's
+/// quarter-width ResNet-18 runs on mte's fused CPU kernels, `mte_policy::kernels`).
+#[divan::bench(sample_count = 5)]
+fn encoder_train_step(bencher: divan::Bencher) {
+    let vm = VarMap::new();
+    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+    let enc = mte_policy::vision::RgbEncoder::with_width(16, Some([84, 84]), 32, vb).expect("enc");
+    let x = Tensor::rand(0f32, 1.0, (128, 3, 84, 84), &Device::Cpu).expect("x");
+    bencher.bench_local(|| {
+        let f = enc.forward_cropped(&x).expect("forward");
+        f.sqr()
+            .and_then(|v| v.sum_all())
+            .and_then(|l| l.backward())
+            .expect("backward")
+    });
 }
 
 /// Two identical observations of the kind `preset` reads.

@@ -6,6 +6,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod error;
 pub mod init;
+pub mod kernels;
 pub mod model;
 pub mod normalize;
 pub mod scheduler;

@@ -89,7 +89,8 @@ impl DiffusionPolicy {
         let a_dim = config.action_dim()?;
         let vb = vb.pp("diffusion");
         let rgb = match config.image_shape() {
-            Some(_) => Some(RgbEncoder::new(
+            Some(_) => Some(RgbEncoder::with_width(
+                config.vision_backbone_width,
                 config.crop_shape,
                 config.spatial_softmax_num_keypoints,
                 vb.pp("rgb_encoder"),

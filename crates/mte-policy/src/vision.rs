@@ -5,9 +5,14 @@
 //! 1-4, `pool.nets`, `out`).
 //!
 //! Input: `(B, 3, H, W)` normalised images; output `(B, 2 * num_keypoints)`.
+//!
+//! The backbone's width is a parameter (`vision_backbone_width`: 64 is torchvision's
+//! ResNet-18, the `cpu` preset uses 16). Convolutions, GroupNorm and the stem's max pool run
+//! on mte's fused CPU kernels ([`crate::kernels`]), which have fast backward passes.
 
+use crate::kernels::{Conv2d, GroupNorm, max_pool_3x3_s2};
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{Conv2d, Conv2dConfig, GroupNorm, Linear, VarBuilder};
+use candle_nn::{Linear, VarBuilder};
 
 const GN_EPS: f64 = 1e-5;
 
@@ -19,16 +24,11 @@ fn conv(
     pad: usize,
     vb: VarBuilder,
 ) -> Result<Conv2d> {
-    let cfg = Conv2dConfig {
-        padding: pad,
-        stride,
-        ..Default::default()
-    };
-    candle_nn::conv2d_no_bias(cin, cout, k, cfg, vb)
+    Conv2d::new(cin, cout, k, stride, pad, false, vb)
 }
 
 fn gn(c: usize, vb: VarBuilder) -> Result<GroupNorm> {
-    candle_nn::group_norm(c / 16, c, GN_EPS, vb)
+    GroupNorm::new(c / 16, c, GN_EPS, vb)
 }
 
 /// torchvision's `BasicBlock` with GroupNorm.
@@ -86,10 +86,21 @@ pub struct RgbEncoder {
 impl RgbEncoder {
     /// Build/load for images cropped to `crop` (None: full image) with `num_kp` keypoints.
     pub fn new(crop: Option<[usize; 2]>, num_kp: usize, vb: VarBuilder) -> Result<Self> {
+        Self::with_width(64, crop, num_kp, vb)
+    }
+
+    /// As [`RgbEncoder::new`] with stem width `w0` (layers `w0, 2 w0, 4 w0, 8 w0`; ResNet-18
+    /// is 64). `w0` must be a multiple of 16 for GroupNorm(C / 16).
+    pub fn with_width(
+        w0: usize,
+        crop: Option<[usize; 2]>,
+        num_kp: usize,
+        vb: VarBuilder,
+    ) -> Result<Self> {
         let b = vb.pp("backbone");
         let mut layers = Vec::new();
-        let widths = [64, 128, 256, 512];
-        let mut cin = 64;
+        let widths = [w0, 2 * w0, 4 * w0, 8 * w0];
+        let mut cin = w0;
         for (i, &w) in widths.iter().enumerate() {
             let stride = if i == 0 { 1 } else { 2 };
             let lb = b.pp(4 + i);
@@ -99,11 +110,10 @@ impl RgbEncoder {
             ]);
             cin = w;
         }
-        let keypoints =
-            candle_nn::conv2d(512, num_kp, 1, Conv2dConfig::default(), vb.pp("pool.nets"))?;
+        let keypoints = Conv2d::new(8 * w0, num_kp, 1, 1, 0, true, vb.pp("pool.nets"))?;
         Ok(RgbEncoder {
-            conv1: conv(3, 64, 7, 2, 3, b.pp("0"))?,
-            bn1: gn(64, b.pp("1"))?,
+            conv1: conv(3, w0, 7, 2, 3, b.pp("0"))?,
+            bn1: gn(w0, b.pp("1"))?,
             layers,
             keypoints,
             out: candle_nn::linear(2 * num_kp, 2 * num_kp, vb.pp("out"))?,
@@ -153,7 +163,7 @@ impl RgbEncoder {
         let h = self.bn1.forward(&self.conv1.forward(x)?)?.relu()?;
         // Max pool 3x3, stride 2, padding 1: after ReLU every value is >= 0, so zero padding
         // is equivalent to torch's -inf padding.
-        let mut h = max_pool_3x3_s2(&h.pad_with_zeros(2, 1, 1)?.pad_with_zeros(3, 1, 1)?)?;
+        let mut h = max_pool_3x3_s2(&h)?;
         let mut out = vec![h.clone()];
         for layer in &self.layers {
             for block in layer {
@@ -217,62 +227,4 @@ pub fn pos_grid(h: usize, w: usize, device: &candle_core::Device) -> Result<Tens
         }
     }
     Tensor::from_vec(v, (h * w, 2), device)
-}
-
-/// Max pool 3x3 with stride 2 on an already padded `(B, C, H, W)` batch, as the maximum of
-/// nine strided views. Same values as `max_pool2d_with_stride(3, 2)`, but differentiable:
-/// candle's max-pool backward only supports kernel = stride, so the observation gradient
-/// (PGD) and the stem's weight gradients would not flow through it.
-pub fn max_pool_3x3_s2(x: &Tensor) -> Result<Tensor> {
-    let (b, c, h, w) = x.dims4()?;
-    let (oh, ow) = ((h - 3) / 2 + 1, (w - 3) / 2 + 1);
-    // One spare zero row and column so every offset's strided view fits; the spare cells
-    // are only ever read as the discarded half of a pair.
-    let x = x.pad_with_zeros(2, 0, 1)?.pad_with_zeros(3, 0, 1)?;
-    let mut out: Option<Tensor> = None;
-    for dy in 0..3 {
-        let rows = x
-            .narrow(2, dy, 2 * oh)?
-            .reshape((b, c, oh, 2, w + 1))?
-            .narrow(3, 0, 1)?
-            .squeeze(3)?;
-        for dx in 0..3 {
-            let v = rows
-                .narrow(3, dx, 2 * ow)?
-                .reshape((b, c, oh, ow, 2))?
-                .narrow(4, 0, 1)?
-                .squeeze(4)?;
-            out = Some(match out {
-                None => v,
-                Some(m) => m.maximum(&v)?,
-            });
-        }
-    }
-    out.ok_or_else(|| candle_core::Error::Msg("empty max pool".into()))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use candle_core::{Device, Var};
-
-    #[test]
-    fn strided_max_pool_equals_candles_and_has_a_gradient() -> Result<()> {
-        for (h, w) in [(44, 44), (43, 45), (10, 7)] {
-            let x = Tensor::randn(0f32, 1.0, (2, 3, h, w), &Device::Cpu)?;
-            let ours: Vec<f32> = max_pool_3x3_s2(&x)?.flatten_all()?.to_vec1()?;
-            let theirs: Vec<f32> = x.max_pool2d_with_stride(3, 2)?.flatten_all()?.to_vec1()?;
-            assert_eq!(ours, theirs, "{h}x{w}");
-        }
-        let v = Var::from_tensor(&Tensor::randn(0f32, 1.0, (1, 1, 9, 9), &Device::Cpu)?)?;
-        let g = max_pool_3x3_s2(v.as_tensor())?.sum_all()?.backward()?;
-        let gv: Vec<f32> = g
-            .get(v.as_tensor())
-            .ok_or_else(|| candle_core::Error::Msg("no gradient".into()))?
-            .flatten_all()?
-            .to_vec1()?;
-        // Each of the 16 windows routes its unit gradient to its maximum.
-        assert!((gv.iter().sum::<f32>() - 16.0).abs() < 1e-5);
-        Ok(())
-    }
 }

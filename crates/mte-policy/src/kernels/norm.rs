@@ -1,0 +1,333 @@
+//! GroupNorm in one pass forward and one pass backward.
+//!
+//! Input `(B, C, ...)`, `G` groups of `C / G` consecutive channels; per (sample, group):
+//! `x̂ = (x - μ) / sqrt(σ² + ε)` with the biased variance (torch's convention), then
+//! `y = γ_c x̂ + β_c`. Backward, with `n` elements per group and `ĝ = γ_c · dy`:
+//! `dx = (ĝ - mean(ĝ) - x̂ · mean(ĝ x̂)) / sqrt(σ² + ε)`, `dγ_c = Σ dy x̂`, `dβ_c = Σ dy`.
+
+use super::{Float, contiguous};
+use candle_core::backend::BackendStorage;
+use candle_core::{CpuStorage, CustomOp3, Layout, Module, Result, Shape, Tensor};
+use candle_nn::VarBuilder;
+use rayon::prelude::*;
+
+#[derive(Clone, Copy, Debug)]
+struct Dims {
+    c: usize,
+    s: usize,
+    groups: usize,
+    eps: f64,
+}
+
+impl Dims {
+    fn of(layout: &Layout, groups: usize, eps: f64) -> Result<Self> {
+        let d = layout.dims();
+        if d.len() < 2 || groups == 0 || !d[1].is_multiple_of(groups) {
+            candle_core::bail!("group_norm: shape {d:?} does not split into {groups} groups")
+        }
+        Ok(Dims {
+            c: d[1],
+            s: d[2..].iter().product(),
+            groups,
+            eps,
+        })
+    }
+
+    /// Elements of one (sample, group) block, and channels per group.
+    fn block(&self) -> (usize, usize) {
+        let cg = self.c / self.groups;
+        (cg * self.s, cg)
+    }
+}
+
+/// Mean and 1 / sqrt(var + eps) of a block.
+fn moments<T: Float>(x: &[T], eps: f64) -> (f64, f64) {
+    let n = x.len() as f64;
+    let mean = x.iter().map(|v| v.to_f64()).sum::<f64>() / n;
+    let var = x
+        .iter()
+        .map(|v| {
+            let d = v.to_f64() - mean;
+            d * d
+        })
+        .sum::<f64>()
+        / n;
+    (mean, 1.0 / (var + eps).sqrt())
+}
+
+fn forward<T: Float>(x: &[T], gamma: &[T], beta: &[T], d: Dims) -> Vec<T> {
+    let (n, cg) = d.block();
+    let mut y = vec![T::default(); x.len()];
+    y.par_chunks_mut(n)
+        .zip(x.par_chunks(n))
+        .enumerate()
+        .for_each(|(blk, (yb, xb))| {
+            let g = blk % d.groups;
+            let (mean, rstd) = moments(xb, d.eps);
+            for ci in 0..cg {
+                let c = g * cg + ci;
+                let (ga, be) = (gamma[c].to_f64(), beta[c].to_f64());
+                let r = ci * d.s..(ci + 1) * d.s;
+                for (yv, xv) in yb[r.clone()].iter_mut().zip(&xb[r]) {
+                    *yv = T::from_f64((xv.to_f64() - mean) * rstd * ga + be);
+                }
+            }
+        });
+    y
+}
+
+/// `[dx (B·C·S) | dγ (C) | dβ (C)]` in one buffer.
+fn backward<T: Float>(x: &[T], gamma: &[T], dy: &[T], d: Dims) -> Vec<T> {
+    let (n, cg) = d.block();
+    let mut dx = vec![T::default(); x.len()];
+    // Per block: its channels' (Σ dy x̂, Σ dy), summed over the batch afterwards.
+    let partial: Vec<Vec<(f64, f64)>> = dx
+        .par_chunks_mut(n)
+        .zip(x.par_chunks(n).zip(dy.par_chunks(n)))
+        .enumerate()
+        .map(|(blk, (dxb, (xb, dyb)))| {
+            let g = blk % d.groups;
+            let (mean, rstd) = moments(xb, d.eps);
+            let (mut m_g, mut m_gx) = (0.0, 0.0);
+            let mut sums = vec![(0.0, 0.0); cg];
+            for (ci, sum) in sums.iter_mut().enumerate() {
+                let ga = gamma[g * cg + ci].to_f64();
+                let r = ci * d.s..(ci + 1) * d.s;
+                for (xv, dv) in xb[r.clone()].iter().zip(&dyb[r]) {
+                    let xh = (xv.to_f64() - mean) * rstd;
+                    let dv = dv.to_f64();
+                    sum.0 += dv * xh;
+                    sum.1 += dv;
+                    m_g += ga * dv;
+                    m_gx += ga * dv * xh;
+                }
+            }
+            let (m_g, m_gx) = (m_g / n as f64, m_gx / n as f64);
+            for ci in 0..cg {
+                let ga = gamma[g * cg + ci].to_f64();
+                let r = ci * d.s..(ci + 1) * d.s;
+                for ((o, xv), dv) in dxb[r.clone()].iter_mut().zip(&xb[r.clone()]).zip(&dyb[r]) {
+                    let xh = (xv.to_f64() - mean) * rstd;
+                    *o = T::from_f64(rstd * (ga * dv.to_f64() - m_g - xh * m_gx));
+                }
+            }
+            sums
+        })
+        .collect();
+    let mut dgamma = vec![0.0; d.c];
+    let mut dbeta = vec![0.0; d.c];
+    for (blk, sums) in partial.iter().enumerate() {
+        let g = blk % d.groups;
+        for (ci, (sg, sb)) in sums.iter().enumerate() {
+            dgamma[g * cg + ci] += sg;
+            dbeta[g * cg + ci] += sb;
+        }
+    }
+    dx.extend(dgamma.into_iter().map(T::from_f64));
+    dx.extend(dbeta.into_iter().map(T::from_f64));
+    dx
+}
+
+#[derive(Clone, Copy, Debug)]
+struct GroupNormOp {
+    groups: usize,
+    eps: f64,
+}
+
+impl CustomOp3 for GroupNormOp {
+    fn name(&self) -> &'static str {
+        "mte-group-norm"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let d = Dims::of(l1, self.groups, self.eps)?;
+        let out = match (s1, s2, s3) {
+            (CpuStorage::F32(x), CpuStorage::F32(g), CpuStorage::F32(b)) => {
+                CpuStorage::F32(forward(
+                    contiguous(x, l1)?,
+                    contiguous(g, l2)?,
+                    contiguous(b, l3)?,
+                    d,
+                ))
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(g), CpuStorage::F64(b)) => {
+                CpuStorage::F64(forward(
+                    contiguous(x, l1)?,
+                    contiguous(g, l2)?,
+                    contiguous(b, l3)?,
+                    d,
+                ))
+            }
+            _ => candle_core::bail!("group_norm: unsupported dtype {:?}", s1.dtype()),
+        };
+        Ok((out, l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        gamma: &Tensor,
+        _beta: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let all = x.apply_op3_no_bwd(gamma, &grad.contiguous()?, &GroupNormBwd(*self))?;
+        let (n, c) = (x.elem_count(), x.dim(1)?);
+        Ok((
+            Some(all.narrow(0, 0, n)?.reshape(x.shape())?),
+            Some(all.narrow(0, n, c)?),
+            Some(all.narrow(0, n + c, c)?),
+        ))
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+struct GroupNormBwd(GroupNormOp);
+
+impl CustomOp3 for GroupNormBwd {
+    fn name(&self) -> &'static str {
+        "mte-group-norm-bwd"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let d = Dims::of(l1, self.0.groups, self.0.eps)?;
+        let out = match (s1, s2, s3) {
+            (CpuStorage::F32(x), CpuStorage::F32(g), CpuStorage::F32(dy)) => {
+                CpuStorage::F32(backward(
+                    contiguous(x, l1)?,
+                    contiguous(g, l2)?,
+                    contiguous(dy, l3)?,
+                    d,
+                ))
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(g), CpuStorage::F64(dy)) => {
+                CpuStorage::F64(backward(
+                    contiguous(x, l1)?,
+                    contiguous(g, l2)?,
+                    contiguous(dy, l3)?,
+                    d,
+                ))
+            }
+            _ => candle_core::bail!("group_norm backward: unsupported dtype {:?}", s1.dtype()),
+        };
+        let len = l1.shape().elem_count() + 2 * d.c;
+        Ok((out, Shape::from(len)))
+    }
+}
+
+/// GroupNorm of `x (B, C, ...)` with per-channel `gamma`, `beta` (C): the fused kernel on
+/// the CPU, candle_nn's composed version elsewhere.
+pub fn group_norm(
+    x: &Tensor,
+    groups: usize,
+    gamma: &Tensor,
+    beta: &Tensor,
+    eps: f64,
+) -> Result<Tensor> {
+    if !x.device().is_cpu() {
+        let c = x.dim(1)?;
+        return candle_nn::GroupNorm::new(gamma.clone(), beta.clone(), c, groups, eps)?.forward(x);
+    }
+    x.contiguous()?.apply_op3(
+        &gamma.contiguous()?,
+        &beta.contiguous()?,
+        GroupNormOp { groups, eps },
+    )
+}
+
+/// A GroupNorm layer with candle_nn's parameter names (`weight` = γ, `bias` = β).
+#[derive(Clone, Debug)]
+pub struct GroupNorm {
+    weight: Tensor,
+    bias: Tensor,
+    groups: usize,
+    eps: f64,
+}
+
+impl GroupNorm {
+    /// Load/create (γ = 1, β = 0) a GroupNorm over `channels` in `groups` groups.
+    pub fn new(groups: usize, channels: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
+        if groups == 0 || !channels.is_multiple_of(groups) {
+            candle_core::bail!("group_norm: {channels} channels do not split into {groups} groups")
+        }
+        Ok(GroupNorm {
+            weight: vb.get_with_hints(channels, "weight", candle_nn::Init::Const(1.0))?,
+            bias: vb.get_with_hints(channels, "bias", candle_nn::Init::Const(0.0))?,
+            groups,
+            eps,
+        })
+    }
+}
+
+impl Module for GroupNorm {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        group_norm(x, self.groups, &self.weight, &self.bias, self.eps)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::test_util::{max_diff, rand};
+    use candle_core::Var;
+
+    fn composed(x: &Tensor, groups: usize, g: &Tensor, b: &Tensor) -> Result<Tensor> {
+        candle_nn::GroupNorm::new(g.clone(), b.clone(), x.dim(1)?, groups, 1e-5)?.forward(x)
+    }
+
+    /// Values and all three gradients agree with candle_nn's composed GroupNorm (f64: the
+    /// two differ only in summation order, ~1e-14).
+    #[test]
+    fn matches_candles_composed_group_norm() -> Result<()> {
+        for (i, (shape, groups)) in [
+            (vec![2, 8, 5, 3], 4),
+            (vec![3, 6, 7], 3),
+            (vec![1, 4, 9, 9], 1),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let c = shape[1];
+            let x = Var::from_tensor(&rand(&shape, i as u64))?;
+            let g = Var::from_tensor(&(rand(&[c], 10 + i as u64) + 1.5)?)?;
+            let b = Var::from_tensor(&rand(&[c], 20 + i as u64))?;
+            let r = rand(&shape, 30 + i as u64);
+            let ours = group_norm(x.as_tensor(), groups, g.as_tensor(), b.as_tensor(), 1e-5)?;
+            let theirs = composed(x.as_tensor(), groups, g.as_tensor(), b.as_tensor())?;
+            assert!(max_diff(&ours, &theirs) < 1e-12, "case {i}: values");
+            let go = (ours * &r)?.sum_all()?.backward()?;
+            let gt = (theirs * &r)?.sum_all()?.backward()?;
+            for v in [&x, &g, &b] {
+                let (a, t) = (go.get(v.as_tensor()), gt.get(v.as_tensor()));
+                let (a, t) = (a.expect("ours"), t.expect("candle's"));
+                let err = max_diff(a, t);
+                assert!(err < 1e-11, "case {i}: gradient max |diff| {err}");
+            }
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn channels_not_divisible_by_groups_is_an_error() {
+        let x = rand(&[1, 6, 4], 1);
+        let g = rand(&[6], 2);
+        let e = group_norm(&x, 4, &g, &g, 1e-5).expect_err("6 channels in 4 groups");
+        assert!(e.to_string().contains("4 groups"), "{e}");
+    }
+}

@@ -10,7 +10,7 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::VarBuilder;
+use candle_nn::{VarBuilder, VarMap};
 
 use crate::config::DiffusionConfig;
 use crate::error::PolicyError;
@@ -125,6 +125,32 @@ pub fn load(dir: &Path, device: &Device) -> Result<DiffusionPolicy, PolicyError>
         PolicyError::Candle(err) => ck(&wpath, err.to_string()),
         other => other,
     })
+}
+
+/// Load a checkpoint as trainable variables: the policy and the [`VarMap`] holding its
+/// weights under LeRobot's key names (for fine-tuning; [`load`] gives constants).
+pub fn load_trainable(
+    dir: &Path,
+    device: &Device,
+) -> Result<(DiffusionPolicy, VarMap), PolicyError> {
+    let fixed = load(dir, device)?;
+    let wpath = dir.join(WEIGHTS);
+    let weights = read_tensors(&wpath, device)?;
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, device);
+    let policy = DiffusionPolicy::new(fixed.config().clone(), fixed.stats().clone(), vb)?;
+    let vars = varmap
+        .data()
+        .lock()
+        .map_err(|_| ck(&wpath, "variable map poisoned"))?;
+    for (name, var) in vars.iter() {
+        let t = weights
+            .get(name)
+            .ok_or_else(|| ck(&wpath, format!("missing {name}")))?;
+        var.set(t).map_err(|e| ck(&wpath, format!("{name}: {e}")))?;
+    }
+    drop(vars);
+    Ok((policy, varmap))
 }
 
 /// Save `config`, `weights` (LeRobot key names) and `stats` as a new-layout directory.

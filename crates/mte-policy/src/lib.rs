@@ -9,6 +9,7 @@ pub mod init;
 pub mod kernels;
 pub mod model;
 pub mod normalize;
+pub mod patch;
 pub mod scheduler;
 pub mod train;
 pub mod unet;

@@ -309,6 +309,15 @@ impl DiffusionPolicy {
         Ok(Tensor::cat(&parts, D::Minus1)?.flatten_from(1)?)
     }
 
+    /// The image encoder's features `(N, 2K)` of full frames `(N, 3, H, W)` in [0, 1]
+    /// (normalised and centre-cropped as at evaluation), for probes and defences.
+    pub fn image_features(&self, img: &Tensor) -> Result<Tensor, PolicyError> {
+        let enc = self.rgb.as_ref().ok_or_else(|| {
+            config_err("input_features", "no observation.image", "an image policy")
+        })?;
+        Ok(enc.forward(&self.normalize_image(img)?)?)
+    }
+
     fn normalize_image(&self, img: &Tensor) -> Result<Tensor, PolicyError> {
         match &self.image_norm {
             Some((mean, std)) => {

@@ -125,11 +125,6 @@ pub fn learning_rate(lr: f64, warmup: usize, total: usize, step: usize) -> f64 {
     lr * 0.5 * (1.0 + (std::f64::consts::PI * progress.min(1.0)).cos())
 }
 
-struct Windows {
-    /// (episode start frame, episode length, window offset) per window.
-    index: Vec<(usize, usize, isize)>,
-}
-
 fn windows(data: &TrainData, c: &DiffusionConfig, successful_only: bool) -> Windows {
     let pad_before = (c.n_obs_steps - 1) as isize;
     let pad_after = (c.n_action_steps - 1) as isize;
@@ -145,6 +140,117 @@ fn windows(data: &TrainData, c: &DiffusionConfig, successful_only: bool) -> Wind
         start += len;
     }
     Windows { index }
+}
+
+/// Demonstration windows of `data` (LeRobot's padding: `n_obs_steps - 1` frames before an
+/// episode's start, `n_action_steps - 1` after its end, repeated edge frames).
+pub struct Windows {
+    /// (episode start frame, episode length, window offset) per window.
+    index: Vec<(usize, usize, isize)>,
+}
+
+impl Windows {
+    /// Every window of `data` for `config` (optionally only successful episodes).
+    pub fn new(data: &TrainData, config: &DiffusionConfig, successful_only: bool) -> Self {
+        windows(data, config, successful_only)
+    }
+
+    /// Number of windows.
+    pub fn len(&self) -> usize {
+        self.index.len()
+    }
+
+    /// No windows.
+    pub fn is_empty(&self) -> bool {
+        self.index.is_empty()
+    }
+}
+
+/// A batch of `b` windows drawn uniformly from `win`: the observation batch (images in
+/// [0, 1]: random crops when `crop` and the config crops randomly, else full frames) and the
+/// normalised action chunks `x0 (b, horizon, action_dim)` as a flat vector. Every draw comes
+/// from `rng`.
+pub fn sample_batch(
+    policy: &DiffusionPolicy,
+    data: &TrainData,
+    win: &Windows,
+    b: usize,
+    rng: &mut ChaCha8Rng,
+    crop: bool,
+) -> Result<(ObsBatch, Vec<f32>), PolicyError> {
+    if win.is_empty() {
+        return Err(config_err(
+            "dataset",
+            0,
+            "episodes long enough for one window",
+        ));
+    }
+    let config = policy.config();
+    let device = policy.device();
+    let s_dim = config.vector_dim(FeatureType::State).unwrap_or(0);
+    let e_dim = config.vector_dim(FeatureType::Env);
+    let a_dim = config.action_dim()?;
+    let image = config.image_shape();
+    let t_o = config.n_obs_steps;
+    let tp = config.horizon;
+    let mut st = Vec::with_capacity(b * t_o * s_dim);
+    let mut env = Vec::new();
+    let mut act = Vec::with_capacity(b * tp * a_dim);
+    let mut imgs: Vec<f32> = Vec::new();
+    let (crop_h, crop_w) = match (image, config.crop_shape) {
+        (Some(_), Some([h, w])) if crop => (h, w),
+        (Some([_, h, w]), _) => (h, w),
+        _ => (0, 0),
+    };
+    for _ in 0..b {
+        let (start, len, off) = win.index[rng.random_range(0..win.index.len())];
+        let frame = |k: isize| start + (off + k).clamp(0, len as isize - 1) as usize;
+        for k in 0..t_o as isize {
+            let f = frame(k);
+            st.extend_from_slice(&data.state[f * s_dim..(f + 1) * s_dim]);
+            if let (Some(d), Some(e)) = (e_dim, &data.env_state) {
+                env.extend_from_slice(&e[f * d..(f + 1) * d]);
+            }
+            if let (Some([c, h, w]), Some(px)) = (image, &data.images) {
+                let (top, left) = if crop && config.crop_is_random {
+                    (
+                        rng.random_range(0..=h - crop_h),
+                        rng.random_range(0..=w - crop_w),
+                    )
+                } else {
+                    ((h - crop_h) / 2, (w - crop_w) / 2)
+                };
+                let base = f * h * w * c;
+                for ch in 0..c {
+                    for y in top..top + crop_h {
+                        for x in left..left + crop_w {
+                            imgs.push(f32::from(px[base + (y * w + x) * c + ch]) / 255.0);
+                        }
+                    }
+                }
+            }
+        }
+        for k in 0..tp as isize {
+            let f = frame(k);
+            act.extend_from_slice(&data.action[f * a_dim..(f + 1) * a_dim]);
+        }
+    }
+    // Normalise with the policy's own normalisers (the ones it will use at inference).
+    let mut x0 = act;
+    policy.action_normalizer().normalize(&mut x0);
+    let obs = policy.normalized_obs_batch(st, (!env.is_empty()).then_some(env), b)?;
+    let obs = ObsBatch {
+        image: match image {
+            Some([c, _, _]) => Some(Tensor::from_vec(
+                imgs,
+                (b * t_o, c, crop_h, crop_w),
+                device,
+            )?),
+            None => None,
+        },
+        ..obs
+    };
+    Ok((obs, x0))
 }
 
 /// Train from scratch, or resume from `out` if it holds a training state. Checkpoints go to
@@ -230,74 +336,15 @@ pub fn train(
             "episodes long enough for one window",
         ));
     }
-    let s_dim = config.vector_dim(FeatureType::State).unwrap_or(0);
-    let e_dim = config.vector_dim(FeatureType::Env);
     let a_dim = config.action_dim()?;
-    let image = config.image_shape();
-    let (t_o, tp, b) = (config.n_obs_steps, config.horizon, train.batch_size);
+    let (tp, b) = (config.horizon, train.batch_size);
     let steps_at_start = step;
     let mut recent = std::collections::VecDeque::new();
     while step < train.steps {
         let mut rng = ChaCha8Rng::seed_from_u64(
             train.seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
         );
-        let mut st = Vec::with_capacity(b * t_o * s_dim);
-        let mut env = Vec::new();
-        let mut act = Vec::with_capacity(b * tp * a_dim);
-        let mut imgs: Vec<f32> = Vec::new();
-        let (crop_h, crop_w) = match (image, config.crop_shape) {
-            (Some(_), Some([h, w])) => (h, w),
-            (Some([_, h, w]), None) => (h, w),
-            _ => (0, 0),
-        };
-        for _ in 0..b {
-            let (start, len, off) = win.index[rng.random_range(0..win.index.len())];
-            let frame = |k: isize| start + (off + k).clamp(0, len as isize - 1) as usize;
-            for k in 0..t_o as isize {
-                let f = frame(k);
-                st.extend_from_slice(&data.state[f * s_dim..(f + 1) * s_dim]);
-                if let (Some(d), Some(e)) = (e_dim, &data.env_state) {
-                    env.extend_from_slice(&e[f * d..(f + 1) * d]);
-                }
-                if let (Some([c, h, w]), Some(px)) = (image, &data.images) {
-                    let (top, left) = if config.crop_is_random {
-                        (
-                            rng.random_range(0..=h - crop_h),
-                            rng.random_range(0..=w - crop_w),
-                        )
-                    } else {
-                        ((h - crop_h) / 2, (w - crop_w) / 2)
-                    };
-                    let base = f * h * w * c;
-                    for ch in 0..c {
-                        for y in top..top + crop_h {
-                            for x in left..left + crop_w {
-                                imgs.push(f32::from(px[base + (y * w + x) * c + ch]) / 255.0);
-                            }
-                        }
-                    }
-                }
-            }
-            for k in 0..tp as isize {
-                let f = frame(k);
-                act.extend_from_slice(&data.action[f * a_dim..(f + 1) * a_dim]);
-            }
-        }
-        // Normalise with the policy's own normalisers (the ones it will use at inference).
-        let mut x0 = act;
-        policy.action_normalizer().normalize(&mut x0);
-        let obs = policy.normalized_obs_batch(st, (!env.is_empty()).then_some(env), b)?;
-        let obs = ObsBatch {
-            image: match image {
-                Some([c, _, _]) => Some(Tensor::from_vec(
-                    imgs,
-                    (b * t_o, c, crop_h, crop_w),
-                    device,
-                )?),
-                None => None,
-            },
-            ..obs
-        };
+        let (obs, x0) = sample_batch(&policy, data, &win, b, &mut rng, true)?;
         let eps: Vec<f32> = (0..b * tp * a_dim)
             .map(|_| StandardNormal.sample(&mut rng))
             .collect();

@@ -1,0 +1,554 @@
+//! The physical patch attack and the metric-type defence (protocol sections 4-5).
+//!
+//! - [`train_patch`]: a square texture pasted at a fixed place in the frame (callers map the
+//!   patch's world position with `mte_sim::patch::origin_px`), optimised offline on
+//!   demonstration windows to *maximise* the policy's own noise-prediction loss, by raw
+//!   gradient ascent or sign ascent, for a number of epochs; pixels stay in [0, 1].
+//! - [`finetune_encoder`]: the denoising head frozen, the image encoder fine-tuned (AdamW) on
+//!   batches carrying the patch at random positions, minimising the policy loss plus a
+//!   consistency term `λ · mean(‖f(x ⊕ patch) − f(x)‖²)` tying the perturbed embedding to the
+//!   clean one (the clean embedding is detached); optionally the patch is regenerated against
+//!   the current encoder every step (one ascent step).
+//! - [`gradient_probe`]: how the fine-tuned encoder changes the attack surface: cosine between
+//!   the loss's input gradients through the original and the fine-tuned policy, the ratio of
+//!   their norms (tuned / original), and the ratio of the latent displacements the patch
+//!   induces (tuned / original).
+//!
+//! Images are full frames `(N, 3, H, W)` in [0, 1], cropped by the policy as at evaluation.
+//! All randomness comes from the seeds in the configs.
+
+use candle_core::{D, DType, Tensor, Var};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+use crate::error::{PolicyError, config_err};
+use crate::model::{DiffusionPolicy, ObsBatch};
+use crate::train::{TrainData, Windows, sample_batch};
+
+/// How the patch climbs the loss.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Ascent {
+    /// `P ← clip(P + step · g)`.
+    Raw,
+    /// `P ← clip(P + step · sign(g))` (sign-PGD without a ball: the patch is unconstrained).
+    Sign,
+}
+
+impl std::fmt::Display for Ascent {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Ascent::Raw => "raw",
+            Ascent::Sign => "sign",
+        })
+    }
+}
+
+/// Patch training settings. Defaults: the protocol's 11 epochs and sign ascent at 1.5e-3 (the
+/// middle of its step grid {1e-4, 5e-4, 1.5e-3, 5e-3}); a 16 px patch (1/36 of a 96 px frame)
+/// at pixel (40, 40), i.e. centred on the table at world (256, 256); 16 batches of 16 windows per epoch, sized for 2
+/// CPU cores (the protocol's epochs run over the whole dataset on a GPU; set
+/// `batches_per_epoch` to `windows / batch_size` for that).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PatchConfig {
+    /// Texture side (observation px).
+    pub side: usize,
+    /// Top-left pixel `[x, y]` of the texture in the policy's (uncropped) frame.
+    pub origin: [usize; 2],
+    /// Epochs.
+    pub epochs: usize,
+    /// Batches per epoch.
+    pub batches_per_epoch: usize,
+    /// Windows per batch.
+    pub batch_size: usize,
+    /// Step size (pixel units in [0, 1]).
+    pub step: f64,
+    /// Ascent rule.
+    pub ascent: Ascent,
+    /// Seed of windows, noise and timesteps.
+    pub seed: u64,
+}
+
+impl Default for PatchConfig {
+    fn default() -> Self {
+        PatchConfig {
+            side: 16,
+            origin: [40, 40],
+            epochs: 11,
+            batches_per_epoch: 16,
+            batch_size: 16,
+            step: 1.5e-3,
+            ascent: Ascent::Sign,
+            seed: 0,
+        }
+    }
+}
+
+impl PatchConfig {
+    /// Check every field.
+    pub fn validate(&self) -> Result<(), PolicyError> {
+        if self.side == 0 {
+            return Err(config_err("side", self.side, ">= 1 px"));
+        }
+        for (name, v) in [
+            ("epochs", self.epochs),
+            ("batches_per_epoch", self.batches_per_epoch),
+            ("batch_size", self.batch_size),
+        ] {
+            if v == 0 {
+                return Err(config_err(name, v, ">= 1"));
+            }
+        }
+        if !(self.step.is_finite() && self.step > 0.0) {
+            return Err(config_err("step", self.step, "a finite step > 0"));
+        }
+        Ok(())
+    }
+}
+
+/// A trained patch.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PatchReport {
+    /// Texture `(3, side, side)` in [0, 1], channel-major.
+    pub texture: Vec<f32>,
+    /// Side (px).
+    pub side: usize,
+    /// Top-left pixel `(x, y)` in the policy's frame.
+    pub origin: (usize, usize),
+    /// Mean policy loss with the initial (grey) patch, on the first epoch's batches.
+    pub initial_loss: f64,
+    /// Mean policy loss per epoch, while training.
+    pub epoch_loss: Vec<f64>,
+}
+
+impl PatchReport {
+    /// The texture as RGB u8, row-major (for `mte_sim::Patch` and PNG files).
+    pub fn rgb_u8(&self) -> Vec<u8> {
+        texture_to_rgb(&self.texture, self.side)
+    }
+}
+
+/// `(3, s, s)` in [0, 1] → RGB u8 row-major.
+pub fn texture_to_rgb(texture: &[f32], side: usize) -> Vec<u8> {
+    let n = side * side;
+    (0..n)
+        .flat_map(|i| {
+            (0..3).map(move |c| (texture[c * n + i].clamp(0.0, 1.0) * 255.0).round() as u8)
+        })
+        .collect()
+}
+
+/// RGB u8 row-major → `(3, s, s)` in [0, 1].
+pub fn rgb_to_texture(rgb: &[u8], side: usize) -> Vec<f32> {
+    let n = side * side;
+    (0..3)
+        .flat_map(|c| (0..n).map(move |i| f32::from(rgb[i * 3 + c]) / 255.0))
+        .collect()
+}
+
+/// Paste `patch (3, s, s)` into every frame of `images (N, 3, H, W)` with its top-left
+/// pixel at `(x, y)`; differentiable in both.
+pub fn paste(images: &Tensor, patch: &Tensor, x: usize, y: usize) -> Result<Tensor, PolicyError> {
+    let (_, c, h, w) = images.dims4()?;
+    let (pc, s, s2) = patch.dims3()?;
+    if pc != c || s != s2 || x + s > w || y + s > h {
+        return Err(config_err(
+            "patch",
+            format!("({pc}, {s}, {s2}) at ({x}, {y})"),
+            format!("a ({c}, s, s) texture inside the {w} x {h} frame"),
+        ));
+    }
+    let place = |t: &Tensor| -> candle_core::Result<Tensor> {
+        t.pad_with_zeros(1, y, h - y - s)?
+            .pad_with_zeros(2, x, w - x - s)?
+            .unsqueeze(0)
+    };
+    let mask = place(&patch.ones_like()?)?;
+    let placed = place(patch)?;
+    Ok((images.broadcast_mul(&(1.0 - &mask)?)?
+        + placed.broadcast_as(images.shape())?.broadcast_mul(&mask)?)?)
+}
+
+/// One batch for patch work: full frames, normalised actions, noise and timesteps.
+struct Batch {
+    obs: ObsBatch,
+    x0: Tensor,
+    eps: Tensor,
+    ts: Vec<usize>,
+}
+
+fn batch(
+    policy: &DiffusionPolicy,
+    data: &TrainData,
+    win: &Windows,
+    b: usize,
+    rng: &mut ChaCha8Rng,
+) -> Result<Batch, PolicyError> {
+    let c = policy.config();
+    let (tp, a) = (c.horizon, c.action_dim()?);
+    let (obs, x0) = sample_batch(policy, data, win, b, rng, false)?;
+    let eps: Vec<f32> = (0..b * tp * a)
+        .map(|_| StandardNormal.sample(rng))
+        .collect();
+    let ts = (0..b)
+        .map(|_| rng.random_range(0..c.num_train_timesteps))
+        .collect();
+    let dev = policy.device();
+    Ok(Batch {
+        obs,
+        x0: Tensor::from_vec(x0, (b, tp, a), dev)?,
+        eps: Tensor::from_vec(eps, (b, tp, a), dev)?,
+        ts,
+    })
+}
+
+fn images(b: &Batch) -> Result<&Tensor, PolicyError> {
+    b.obs
+        .image
+        .as_ref()
+        .ok_or_else(|| config_err("input_features", "no observation.image", "an image policy"))
+}
+
+/// The policy loss on `b` with its images replaced by `imgs`.
+fn loss_with(policy: &DiffusionPolicy, b: &Batch, imgs: &Tensor) -> Result<Tensor, PolicyError> {
+    let obs = ObsBatch {
+        image: Some(imgs.clone()),
+        ..b.obs.clone()
+    };
+    let cond = policy.global_cond(&obs)?;
+    policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)
+}
+
+fn frame_hw(policy: &DiffusionPolicy) -> Result<(usize, usize), PolicyError> {
+    match policy.config().image_shape() {
+        Some([_, h, w]) => Ok((h, w)),
+        None => Err(config_err(
+            "input_features",
+            "no observation.image",
+            "an image policy (the patch is drawn into camera frames)",
+        )),
+    }
+}
+
+/// One ascent step on `patch` from gradient `g`.
+fn ascend(patch: &Tensor, g: &Tensor, step: f64, rule: Ascent) -> Result<Tensor, PolicyError> {
+    let dir = match rule {
+        Ascent::Raw => g.clone(),
+        Ascent::Sign => g.sign()?,
+    };
+    Ok((patch + (dir * step)?)?.clamp(0f32, 1f32)?.detach())
+}
+
+/// Train a patch on demonstration windows of `data` against `policy` (see the module doc).
+/// `progress(epoch, mean loss)` is called after each epoch.
+pub fn train_patch(
+    policy: &DiffusionPolicy,
+    data: &TrainData,
+    cfg: &PatchConfig,
+    progress: &dyn Fn(usize, f64),
+) -> Result<PatchReport, PolicyError> {
+    cfg.validate()?;
+    let (h, w) = frame_hw(policy)?;
+    let [x, y] = cfg.origin;
+    if x + cfg.side > w || y + cfg.side > h {
+        return Err(config_err(
+            "origin",
+            format!("{:?} with side {}", cfg.origin, cfg.side),
+            format!("a texture inside the {w} x {h} frame"),
+        ));
+    }
+    let win = Windows::new(data, policy.config(), false);
+    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+    let dev = policy.device();
+    // Start from mid-grey: no prior on what hurts the policy.
+    let mut patch = Tensor::full(0.5f32, (3, cfg.side, cfg.side), dev)?;
+    let mut initial_loss = None;
+    let mut epoch_loss = Vec::with_capacity(cfg.epochs);
+    for epoch in 0..cfg.epochs {
+        let mut total = 0.0;
+        for _ in 0..cfg.batches_per_epoch {
+            let b = batch(policy, data, &win, cfg.batch_size, &mut rng)?;
+            let var = Var::from_tensor(&patch)?;
+            let imgs = paste(images(&b)?, var.as_tensor(), x, y)?;
+            let loss = loss_with(policy, &b, &imgs)?;
+            let grads = loss.backward()?;
+            let g = grads
+                .get(var.as_tensor())
+                .ok_or_else(|| config_err("patch", "no gradient", "a differentiable encoder"))?;
+            total += f64::from(loss.to_dtype(DType::F32)?.to_scalar::<f32>()?);
+            patch = ascend(&patch, g, cfg.step, cfg.ascent)?;
+        }
+        let mean = total / cfg.batches_per_epoch as f64;
+        if epoch == 0 {
+            initial_loss = Some(mean);
+        }
+        epoch_loss.push(mean);
+        progress(epoch, mean);
+    }
+    Ok(PatchReport {
+        texture: patch.flatten_all()?.to_vec1::<f32>()?,
+        side: cfg.side,
+        origin: (x, y),
+        initial_loss: initial_loss.unwrap_or(f64::NAN),
+        epoch_loss,
+    })
+}
+
+/// Encoder fine-tuning settings. Defaults: the protocol's 3000 steps at lr 1e-5; consistency
+/// weight 1; batches of 16 windows; the patch fixed (no regeneration).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct FinetuneConfig {
+    /// Optimiser steps.
+    pub steps: usize,
+    /// AdamW learning rate.
+    pub lr: f64,
+    /// Weight λ of the consistency term.
+    pub consistency: f64,
+    /// Windows per batch.
+    pub batch_size: usize,
+    /// Regenerate the patch against the current encoder every step (one ascent step).
+    pub regenerate: bool,
+    /// Ascent step when regenerating.
+    pub regenerate_step: f64,
+    /// Seed of windows, positions, noise and timesteps.
+    pub seed: u64,
+}
+
+impl Default for FinetuneConfig {
+    fn default() -> Self {
+        FinetuneConfig {
+            steps: 3000,
+            lr: 1e-5,
+            consistency: 1.0,
+            batch_size: 16,
+            regenerate: false,
+            regenerate_step: 1.5e-3,
+            seed: 0,
+        }
+    }
+}
+
+impl FinetuneConfig {
+    /// Check every field.
+    pub fn validate(&self) -> Result<(), PolicyError> {
+        if self.steps == 0 {
+            return Err(config_err("steps", self.steps, ">= 1"));
+        }
+        if self.batch_size == 0 {
+            return Err(config_err("batch_size", self.batch_size, ">= 1"));
+        }
+        for (name, v) in [("lr", self.lr), ("regenerate_step", self.regenerate_step)] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(config_err(name, v, "a finite value > 0"));
+            }
+        }
+        if !(self.consistency.is_finite() && self.consistency >= 0.0) {
+            return Err(config_err(
+                "consistency",
+                self.consistency,
+                "a finite weight >= 0",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// What fine-tuning did.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FinetuneReport {
+    /// Steps run.
+    pub steps: usize,
+    /// Encoder parameters trained (tensors).
+    pub encoder_tensors: usize,
+    /// Mean total loss over the first and last up-to-100 steps.
+    pub first_loss: f64,
+    /// See `first_loss`.
+    pub last_loss: f64,
+    /// Mean consistency term over the first and last up-to-100 steps.
+    pub first_consistency: f64,
+    /// See `first_consistency`.
+    pub last_consistency: f64,
+    /// The patch at the end (changed only when regenerating), `(3, side, side)`.
+    pub texture: Vec<f32>,
+}
+
+/// Fine-tune the image encoder of `policy` (whose weights live in `varmap`, see
+/// `checkpoint::load_trainable`) against `texture (3, side, side)`; only variables under
+/// `diffusion.rgb_encoder.` change. `progress(step, loss)` is called every step.
+pub fn finetune_encoder(
+    policy: &DiffusionPolicy,
+    varmap: &VarMap,
+    data: &TrainData,
+    texture: &[f32],
+    side: usize,
+    cfg: &FinetuneConfig,
+    progress: &dyn Fn(usize, f64),
+) -> Result<FinetuneReport, PolicyError> {
+    cfg.validate()?;
+    let (h, w) = frame_hw(policy)?;
+    if texture.len() != 3 * side * side || side > h.min(w) {
+        return Err(config_err(
+            "texture",
+            texture.len(),
+            format!("3 x side x side values with side <= {}", h.min(w)),
+        ));
+    }
+    let vars: Vec<Var> = {
+        let data = varmap
+            .data()
+            .lock()
+            .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
+        let mut v: Vec<(String, Var)> = data
+            .iter()
+            .filter(|(k, _)| k.starts_with("diffusion.rgb_encoder."))
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v.into_iter().map(|(_, v)| v).collect()
+    };
+    if vars.is_empty() {
+        return Err(config_err(
+            "varmap",
+            "no diffusion.rgb_encoder.* variables",
+            "the policy's trainable weights (checkpoint::load_trainable)",
+        ));
+    }
+    let encoder_tensors = vars.len();
+    let cfg_c = policy.config().clone();
+    let mut opt = AdamW::new(
+        vars,
+        ParamsAdamW {
+            lr: cfg.lr,
+            beta1: cfg_c.optimizer_betas[0],
+            beta2: cfg_c.optimizer_betas[1],
+            eps: cfg_c.optimizer_eps,
+            weight_decay: cfg_c.optimizer_weight_decay,
+        },
+    )?;
+    let win = Windows::new(data, policy.config(), false);
+    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+    let dev = policy.device();
+    let mut patch = Tensor::from_vec(texture.to_vec(), (3, side, side), dev)?;
+    let (mut losses, mut cons) = (Vec::new(), Vec::new());
+    for step in 0..cfg.steps {
+        let b = batch(policy, data, &win, cfg.batch_size, &mut rng)?;
+        let clean = images(&b)?;
+        let (x, y) = (
+            rng.random_range(0..=w - side),
+            rng.random_range(0..=h - side),
+        );
+        if cfg.regenerate {
+            let var = Var::from_tensor(&patch)?;
+            let loss = loss_with(policy, &b, &paste(clean, var.as_tensor(), x, y)?)?;
+            let grads = loss.backward()?;
+            if let Some(g) = grads.get(var.as_tensor()) {
+                patch = ascend(&patch, g, cfg.regenerate_step, Ascent::Sign)?;
+            }
+        }
+        let attacked = paste(clean, &patch, x, y)?;
+        let task = loss_with(policy, &b, &attacked)?;
+        let f_clean = policy.image_features(clean)?.detach();
+        let f_att = policy.image_features(&attacked)?;
+        let consistency = (f_att - f_clean)?.sqr()?.sum(D::Minus1)?.mean_all()?;
+        let total = (task + (&consistency * cfg.consistency)?)?;
+        let grads = total.backward()?;
+        // Only the encoder's variables are in the optimiser: the denoising head is frozen.
+        opt.step(&grads)?;
+        let l = f64::from(total.to_dtype(DType::F32)?.to_scalar::<f32>()?);
+        losses.push(l);
+        cons.push(f64::from(
+            consistency.to_dtype(DType::F32)?.to_scalar::<f32>()?,
+        ));
+        progress(step, l);
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let k = losses.len().min(100);
+    Ok(FinetuneReport {
+        steps: cfg.steps,
+        encoder_tensors,
+        first_loss: mean(&losses[..k]),
+        last_loss: mean(&losses[losses.len() - k..]),
+        first_consistency: mean(&cons[..k]),
+        last_consistency: mean(&cons[cons.len() - k..]),
+        texture: patch.flatten_all()?.to_vec1::<f32>()?,
+    })
+}
+
+/// The gradient probe's figures (means over the probed batches).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ProbeReport {
+    /// Batches probed.
+    pub batches: usize,
+    /// Cosine between d loss / d pixels through the original and the tuned policy.
+    pub cosine: f64,
+    /// ‖∇ tuned‖ / ‖∇ original‖.
+    pub grad_norm_ratio: f64,
+    /// ‖f_tuned(x ⊕ patch) − f_tuned(x)‖ / ‖f_orig(x ⊕ patch) − f_orig(x)‖.
+    pub latent_displacement_ratio: f64,
+}
+
+/// Probe `original` against `tuned` on `batches` batches of `batch_size` windows, with the
+/// patch at its trained place `origin`.
+#[allow(clippy::too_many_arguments)]
+pub fn gradient_probe(
+    original: &DiffusionPolicy,
+    tuned: &DiffusionPolicy,
+    data: &TrainData,
+    texture: &[f32],
+    side: usize,
+    origin: (usize, usize),
+    batches: usize,
+    batch_size: usize,
+    seed: u64,
+) -> Result<ProbeReport, PolicyError> {
+    if batches == 0 || batch_size == 0 {
+        return Err(config_err("batches", (batches, batch_size), ">= 1 each"));
+    }
+    frame_hw(original)?;
+    frame_hw(tuned)?;
+    let win = Windows::new(data, original.config(), false);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let patch = Tensor::from_vec(texture.to_vec(), (3, side, side), original.device())?;
+    let (mut cos, mut ratio, mut disp) = (0.0, 0.0, 0.0);
+    let flat = |t: &Tensor| -> Result<Vec<f64>, PolicyError> {
+        Ok(t.to_dtype(DType::F64)?.flatten_all()?.to_vec1::<f64>()?)
+    };
+    for _ in 0..batches {
+        let b = batch(original, data, &win, batch_size, &mut rng)?;
+        let clean = images(&b)?;
+        let grad = |p: &DiffusionPolicy| -> Result<Vec<f64>, PolicyError> {
+            let (_, g) = p.observation_gradient(&b.obs, &b.x0, &b.eps, &b.ts)?;
+            let g = g
+                .image
+                .ok_or_else(|| config_err("image", "none", "an image gradient"))?;
+            flat(&g)
+        };
+        let (go, gt) = (grad(original)?, grad(tuned)?);
+        let dot: f64 = go.iter().zip(&gt).map(|(a, b)| a * b).sum();
+        let (no, nt) = (norm(&go), norm(&gt));
+        cos += dot / (no * nt).max(f64::MIN_POSITIVE);
+        ratio += nt / no.max(f64::MIN_POSITIVE);
+        let attacked = paste(clean, &patch, origin.0, origin.1)?;
+        let shift = |p: &DiffusionPolicy| -> Result<f64, PolicyError> {
+            let d = (p.image_features(&attacked)? - p.image_features(clean)?)?;
+            Ok(norm(&flat(&d)?))
+        };
+        disp += shift(tuned)? / shift(original)?.max(f64::MIN_POSITIVE);
+    }
+    let n = batches as f64;
+    Ok(ProbeReport {
+        batches,
+        cosine: cos / n,
+        grad_norm_ratio: ratio / n,
+        latent_displacement_ratio: disp / n,
+    })
+}
+
+fn norm(v: &[f64]) -> f64 {
+    v.iter().map(|x| x * x).sum::<f64>().sqrt()
+}

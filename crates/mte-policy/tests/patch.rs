@@ -1,0 +1,277 @@
+//! The physical patch, encoder fine-tuning and the gradient probe on a tiny image policy and
+//! a synthetic dataset.
+
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{VarBuilder, VarMap};
+use mte_policy::config::{DiffusionConfig, ObsKind};
+use mte_policy::patch::{
+    Ascent, FinetuneConfig, PatchConfig, finetune_encoder, gradient_probe, paste, train_patch,
+};
+use mte_policy::train::{TrainData, Windows, sample_batch};
+use mte_policy::{DiffusionPolicy, ObsBatch, Stats, StatsMap};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+fn stats() -> StatsMap {
+    let mm = |lo: f32, hi: f32, n: usize| Stats {
+        min: vec![lo; n],
+        max: vec![hi; n],
+        mean: vec![0.5; n],
+        std: vec![0.25; n],
+    };
+    let mut s = StatsMap::new();
+    s.insert("observation.state".into(), mm(0.0, 512.0, 2));
+    s.insert("observation.image".into(), mm(0.0, 1.0, 3));
+    s.insert("action".into(), mm(0.0, 512.0, 2));
+    s
+}
+
+fn config() -> DiffusionConfig {
+    DiffusionConfig::cpu(ObsKind::Image)
+        .with_overrides(&serde_json::json!({
+            "down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8,
+            "spatial_softmax_num_keypoints": 4
+        }))
+        .expect("valid")
+}
+
+fn tiny(seed: u64) -> (DiffusionPolicy, VarMap) {
+    let vm = VarMap::new();
+    let vb = mte_policy::init::seeded_var_builder(&vm, seed, DType::F32, &Device::Cpu);
+    (
+        DiffusionPolicy::new(config(), stats(), vb).expect("policy"),
+        vm,
+    )
+}
+
+/// Two 24-frame episodes: a bright square moving across a textured frame, actions following it.
+fn data() -> TrainData {
+    let (n, side) = (48usize, 96usize);
+    let mut images = Vec::with_capacity(n * side * side * 3);
+    let (mut state, mut action) = (Vec::new(), Vec::new());
+    for f in 0..n {
+        let c = 10 + (f % 24) * 3;
+        for y in 0..side {
+            for x in 0..side {
+                let on = (c..c + 12).contains(&x) && (c..c + 12).contains(&y);
+                let base = ((x * 7 + y * 13) % 64) as u8;
+                images.extend_from_slice(&[base + if on { 180 } else { 0 }, base, 255 - base]);
+            }
+        }
+        state.extend_from_slice(&[c as f32 * 5.0, 100.0]);
+        action.extend_from_slice(&[c as f32 * 5.0 + 10.0, 120.0]);
+    }
+    TrainData {
+        state,
+        env_state: None,
+        images: Some(images),
+        action,
+        episode_lengths: vec![24, 24],
+        episode_success: vec![true, true],
+        stats: stats(),
+    }
+}
+
+/// The mean loss on fixed batches with the patch `texture` at `origin`.
+fn eval_loss(p: &DiffusionPolicy, d: &TrainData, texture: &Tensor, origin: [usize; 2]) -> f64 {
+    let win = Windows::new(d, p.config(), false);
+    let mut rng = ChaCha8Rng::seed_from_u64(99);
+    let mut total = 0.0;
+    for _ in 0..4 {
+        let (obs, x0) = sample_batch(p, d, &win, 8, &mut rng, false).expect("batch");
+        let x0 = Tensor::from_vec(x0, (8, 16, 2), &Device::Cpu).expect("x0");
+        let eps = Tensor::randn(0f32, 1.0, (8, 16, 2), &Device::Cpu).expect("eps");
+        let ts = [5usize, 20, 35, 50, 65, 80, 90, 99];
+        let imgs = paste(
+            obs.image.as_ref().expect("img"),
+            texture,
+            origin[0],
+            origin[1],
+        )
+        .expect("paste");
+        let obs = ObsBatch {
+            image: Some(imgs),
+            ..obs
+        };
+        let cond = p.global_cond(&obs).expect("cond");
+        let l = p.loss(&cond, &x0, &eps, &ts, None).expect("loss");
+        total += f64::from(l.to_scalar::<f32>().expect("scalar"));
+    }
+    total / 4.0
+}
+
+#[test]
+fn paste_replaces_exactly_the_square_and_routes_gradients_to_the_patch() {
+    let img = Tensor::full(0.25f32, (2, 3, 10, 12), &Device::Cpu).expect("img");
+    let patch =
+        Var::from_tensor(&Tensor::full(0.75f32, (3, 3, 3), &Device::Cpu).expect("p")).expect("var");
+    let out = paste(&img, patch.as_tensor(), 4, 2).expect("paste");
+    let v: Vec<f32> = out.flatten_all().expect("flat").to_vec1().expect("vec");
+    for (i, &x) in v.iter().enumerate() {
+        let (yy, xx) = ((i / 12) % 10, i % 12);
+        let inside = (4..7).contains(&xx) && (2..5).contains(&yy);
+        assert_eq!(x, if inside { 0.75 } else { 0.25 }, "pixel {i}");
+    }
+    let g = out.sum_all().expect("sum").backward().expect("backward");
+    let gp: Vec<f32> = g
+        .get(patch.as_tensor())
+        .expect("patch gradient")
+        .flatten_all()
+        .expect("flat")
+        .to_vec1()
+        .expect("vec");
+    // Each patch pixel appears once in each of the 2 frames.
+    assert!(gp.iter().all(|&x| x == 2.0), "{gp:?}");
+    assert!(
+        paste(&img, patch.as_tensor(), 10, 2).is_err(),
+        "outside the frame"
+    );
+}
+
+#[test]
+fn a_trained_patch_raises_the_loss_stays_in_range_and_is_reproducible() {
+    let (p, _vm) = tiny(1);
+    let d = data();
+    let cfg = PatchConfig {
+        side: 16,
+        origin: [30, 30],
+        epochs: 3,
+        batches_per_epoch: 3,
+        batch_size: 8,
+        step: 5e-2,
+        ascent: Ascent::Sign,
+        seed: 3,
+    };
+    let r = train_patch(&p, &d, &cfg, &|_, _| {}).expect("train");
+    assert_eq!(r.texture.len(), 3 * 16 * 16);
+    assert_eq!(r.epoch_loss.len(), 3);
+    assert!(r.texture.iter().all(|v| (0.0..=1.0).contains(v)));
+    let grey = Tensor::full(0.5f32, (3, 16, 16), &Device::Cpu).expect("grey");
+    let trained = Tensor::from_vec(r.texture.clone(), (3, 16, 16), &Device::Cpu).expect("t");
+    let (l0, l1) = (
+        eval_loss(&p, &d, &grey, [30, 30]),
+        eval_loss(&p, &d, &trained, [30, 30]),
+    );
+    assert!(
+        l1 > l0,
+        "held-out loss with the trained patch {l1} <= grey patch {l0}"
+    );
+    let again = train_patch(&p, &d, &cfg, &|_, _| {}).expect("train again");
+    assert_eq!(again.texture, r.texture, "same seed, same patch");
+    let raw = train_patch(
+        &p,
+        &d,
+        &PatchConfig {
+            ascent: Ascent::Raw,
+            ..cfg.clone()
+        },
+        &|_, _| {},
+    )
+    .expect("raw");
+    assert_ne!(raw.texture, r.texture, "raw and sign ascent differ");
+}
+
+#[test]
+fn patch_errors_are_typed() {
+    let (p, _vm) = tiny(1);
+    let d = data();
+    let bad = PatchConfig {
+        origin: [90, 0],
+        ..PatchConfig::default()
+    };
+    let e = train_patch(&p, &d, &bad, &|_, _| {}).expect_err("outside the frame");
+    assert!(e.to_string().contains("origin"), "{e}");
+    let e = PatchConfig {
+        epochs: 0,
+        ..PatchConfig::default()
+    }
+    .validate()
+    .expect_err("no epochs");
+    assert!(e.to_string().contains("epochs"), "{e}");
+}
+
+#[test]
+fn finetuning_changes_only_the_encoder_and_the_probe_is_neutral_on_itself() {
+    let (p, vm) = tiny(2);
+    let d = data();
+    let snapshot = |vm: &VarMap| -> Vec<(String, Vec<f32>)> {
+        let mut v: Vec<_> = vm
+            .data()
+            .lock()
+            .expect("lock")
+            .iter()
+            .map(|(k, v)| {
+                (
+                    k.clone(),
+                    v.as_tensor()
+                        .flatten_all()
+                        .expect("f")
+                        .to_vec1()
+                        .expect("v"),
+                )
+            })
+            .collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v
+    };
+    let before = snapshot(&vm);
+    let texture = vec![0.9f32; 3 * 12 * 12];
+    let cfg = FinetuneConfig {
+        steps: 3,
+        lr: 1e-3,
+        batch_size: 4,
+        regenerate: true,
+        ..FinetuneConfig::default()
+    };
+    let r = finetune_encoder(&p, &vm, &d, &texture, 12, &cfg, &|_, _| {}).expect("finetune");
+    assert_eq!(r.steps, 3);
+    assert!(r.encoder_tensors > 0);
+    assert!(r.first_loss.is_finite() && r.last_consistency >= 0.0);
+    assert_ne!(r.texture, texture, "regeneration moved the patch");
+    let after = snapshot(&vm);
+    let mut encoder_changed = false;
+    for ((k, a), (_, b)) in before.iter().zip(&after) {
+        if k.starts_with("diffusion.rgb_encoder.") {
+            encoder_changed |= a != b;
+        } else {
+            assert_eq!(a, b, "{k} changed: the denoising head must stay frozen");
+        }
+    }
+    assert!(encoder_changed, "no encoder weight moved");
+    let probe = gradient_probe(&p, &p, &d, &texture, 12, (30, 30), 1, 4, 0).expect("probe");
+    assert!((probe.cosine - 1.0).abs() < 1e-6, "{probe:?}");
+    assert!((probe.grad_norm_ratio - 1.0).abs() < 1e-6, "{probe:?}");
+    assert!(
+        (probe.latent_displacement_ratio - 1.0).abs() < 1e-6,
+        "{probe:?}"
+    );
+    let (other, _) = tiny(7);
+    let probe = gradient_probe(&p, &other, &d, &texture, 12, (30, 30), 1, 4, 0).expect("probe");
+    assert!(
+        probe.cosine < 0.99,
+        "different networks, different gradients: {probe:?}"
+    );
+}
+
+#[test]
+fn keypoint_policies_cannot_carry_a_patch() {
+    let c = DiffusionConfig::cpu(ObsKind::Keypoints)
+        .with_overrides(&serde_json::json!({"down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8}))
+        .expect("valid");
+    let mut s = stats();
+    s.insert(
+        "observation.environment_state".into(),
+        Stats {
+            min: vec![0.0; 16],
+            max: vec![512.0; 16],
+            ..Default::default()
+        },
+    );
+    let vm = VarMap::new();
+    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+    let p = DiffusionPolicy::new(c, s, vb).expect("policy");
+    let mut d = data();
+    d.env_state = Some(vec![1.0; 48 * 16]);
+    let e = train_patch(&p, &d, &PatchConfig::default(), &|_, _| {}).expect_err("no camera");
+    assert!(e.to_string().contains("image"), "{e}");
+}

@@ -55,6 +55,9 @@ pub enum Command {
     /// Adversarial attacks.
     #[command(subcommand)]
     Attack(AttackCommand),
+    /// Defences: encoder adversarial fine-tuning and its gradient probe.
+    #[command(subcommand)]
+    Defend(DefendCommand),
     /// Work with recorded chunk streams.
     #[command(subcommand)]
     Ensemble(EnsembleCommand),
@@ -454,6 +457,126 @@ pub enum AttackCommand {
     /// Sweep PGD's budget and step size against the undefended arm until the attack stops
     /// improving (the paper's calibration).
     Calibrate(CalibrateArgs),
+    /// Train a physical patch against an image policy on demonstration windows (writes
+    /// patch.png + patch.json; evaluate it with `fault = { kind = "patch", path = ... }`).
+    Patch(AttackPatchArgs),
+}
+
+/// Patch ascent rule.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum AscentArg {
+    /// P += step * sign(gradient).
+    Sign,
+    /// P += step * gradient.
+    Raw,
+}
+
+/// `mte attack patch`
+#[derive(Debug, Args)]
+pub struct AttackPatchArgs {
+    /// Image-policy checkpoint directory.
+    #[arg(long, value_name = "DIR")]
+    pub policy: PathBuf,
+    /// Dataset directory with images (`mte data generate --obs state,keypoints,pixels`).
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Texture side (observation px).
+    #[arg(long, default_value_t = 16)]
+    pub side: usize,
+    /// Centre in world px (512 x 512), "x,y".
+    #[arg(long, default_value = "256,256")]
+    pub center: String,
+    /// Epochs (the protocol: 11).
+    #[arg(long, default_value_t = 11)]
+    pub epochs: usize,
+    /// Batches per epoch.
+    #[arg(long, default_value_t = 16)]
+    pub batches_per_epoch: usize,
+    /// Windows per batch.
+    #[arg(long, default_value_t = 16)]
+    pub batch_size: usize,
+    /// Step size (the protocol's grid: 1e-4, 5e-4, 1.5e-3, 5e-3).
+    #[arg(long, default_value_t = 1.5e-3)]
+    pub step: f64,
+    /// Ascent rule.
+    #[arg(long, value_enum, default_value_t = AscentArg::Sign)]
+    pub ascent: AscentArg,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Output directory.
+    #[arg(long, short, value_name = "DIR")]
+    pub out: PathBuf,
+}
+
+/// `mte defend ...`
+#[derive(Debug, Subcommand)]
+pub enum DefendCommand {
+    /// Encoder adversarial fine-tuning against a patch (denoising head frozen).
+    Finetune(FinetuneArgs),
+    /// Gradient probe: original vs fine-tuned encoder.
+    Probe(ProbeArgs),
+}
+
+/// `mte defend finetune`
+#[derive(Debug, Args)]
+pub struct FinetuneArgs {
+    /// Image-policy checkpoint directory.
+    #[arg(long, value_name = "DIR")]
+    pub policy: PathBuf,
+    /// Dataset directory with images.
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Patch directory (`mte attack patch`).
+    #[arg(long, value_name = "DIR")]
+    pub patch: PathBuf,
+    /// Steps (the protocol: 3000).
+    #[arg(long, default_value_t = 3000)]
+    pub steps: usize,
+    /// Learning rate (the protocol: 1e-5).
+    #[arg(long, default_value_t = 1e-5)]
+    pub lr: f64,
+    /// Consistency weight.
+    #[arg(long, default_value_t = 1.0)]
+    pub consistency: f64,
+    /// Windows per batch.
+    #[arg(long, default_value_t = 16)]
+    pub batch_size: usize,
+    /// Regenerate the patch against the current encoder every step.
+    #[arg(long)]
+    pub regenerate: bool,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Output checkpoint directory.
+    #[arg(long, short, value_name = "DIR")]
+    pub out: PathBuf,
+}
+
+/// `mte defend probe`
+#[derive(Debug, Args)]
+pub struct ProbeArgs {
+    /// Original checkpoint.
+    #[arg(long, value_name = "DIR")]
+    pub original: PathBuf,
+    /// Fine-tuned checkpoint.
+    #[arg(long, value_name = "DIR")]
+    pub tuned: PathBuf,
+    /// Dataset directory with images.
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Patch directory.
+    #[arg(long, value_name = "DIR")]
+    pub patch: PathBuf,
+    /// Batches.
+    #[arg(long, default_value_t = 4)]
+    pub batches: usize,
+    /// Windows per batch.
+    #[arg(long, default_value_t = 8)]
+    pub batch_size: usize,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
 }
 
 /// `mte attack calibrate`

@@ -12,8 +12,8 @@ use std::process::ExitCode;
 use clap::Parser;
 
 use crate::args::{
-    AttackCommand, Cli, Command, DataCommand, EnsembleCommand, EvalCommand, SimCommand,
-    TrainCommand,
+    AttackCommand, Cli, Command, DataCommand, DefendCommand, EnsembleCommand, EvalCommand,
+    SimCommand, TrainCommand,
 };
 
 fn main() -> ExitCode {
@@ -24,6 +24,9 @@ fn main() -> ExitCode {
         Command::Report(a) => cmd::report::run(&cli, a),
         Command::Synthetic(a) => cmd::synthetic::run(&cli, a),
         Command::Attack(AttackCommand::Calibrate(a)) => cmd::attack::calibrate(&cli, a),
+        Command::Attack(AttackCommand::Patch(a)) => cmd::attack::patch(&cli, a),
+        Command::Defend(DefendCommand::Finetune(a)) => cmd::attack::finetune(&cli, a),
+        Command::Defend(DefendCommand::Probe(a)) => cmd::attack::probe(&cli, a),
         Command::Ensemble(EnsembleCommand::Replay(a)) => cmd::replay::run(&cli, a),
         Command::Sim(SimCommand::Render(a)) => cmd::sim::render(&cli, a),
         Command::Sim(SimCommand::Rollout(a)) => cmd::sim::rollout(&cli, a),

@@ -418,3 +418,128 @@ fn attack_calibrate_reports_clean_and_attacked_rows() {
         .code(2)
         .stderr(predicate::str::contains("--arm"));
 }
+
+/// The patch pipeline end to end on a tiny image policy: train a patch, fine-tune the
+/// encoder against it, probe the two encoders; files and figures are checked.
+#[test]
+fn patch_finetune_and_probe_run_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    mte()
+        .args(["data", "generate", "--episodes", "2", "--max-steps", "20"])
+        .args(["--obs", "state,keypoints,pixels", "--out"])
+        .arg(p("demos"))
+        .assert()
+        .success();
+    let tiny = p("tiny.json");
+    fs::write(
+        &tiny,
+        r#"{"down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8, "spatial_softmax_num_keypoints": 4}"#,
+    )
+    .unwrap();
+    mte()
+        .args(["train", "diffusion", "--obs", "image", "--steps", "2"])
+        .args(["--batch-size", "4", "--checkpoint-every", "0", "--data"])
+        .arg(p("demos"))
+        .arg("--config")
+        .arg(&tiny)
+        .arg("--out")
+        .arg(p("policy"))
+        .assert()
+        .success();
+    mte()
+        .args([
+            "--quiet",
+            "attack",
+            "patch",
+            "--epochs",
+            "2",
+            "--batches-per-epoch",
+            "1",
+        ])
+        .args([
+            "--batch-size",
+            "4",
+            "--side",
+            "12",
+            "--center",
+            "100,400",
+            "--policy",
+        ])
+        .arg(p("policy"))
+        .arg("--data")
+        .arg(p("demos"))
+        .arg("--out")
+        .arg(p("patch"))
+        .assert()
+        .success()
+        .stdout(predicate::str::contains("patch 12x12 at world (100, 400)"));
+    let meta: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(p("patch/patch.json")).unwrap()).unwrap();
+    assert_eq!(meta["format"], "mte-patch-v1");
+    // 100 / 512 * 96 - 6 = 12.75 -> 13; 400 / 512 * 96 - 6 = 69.
+    assert_eq!(meta["origin"], serde_json::json!([13, 69]));
+    assert_eq!(meta["epoch_loss"].as_array().unwrap().len(), 2);
+    assert!(p("patch/patch.png").exists());
+    mte()
+        .args([
+            "--quiet",
+            "defend",
+            "finetune",
+            "--steps",
+            "2",
+            "--batch-size",
+            "4",
+        ])
+        .args(["--lr", "1e-3", "--policy"])
+        .arg(p("policy"))
+        .arg("--data")
+        .arg(p("demos"))
+        .arg("--patch")
+        .arg(p("patch"))
+        .arg("--out")
+        .arg(p("tuned"))
+        .assert()
+        .success()
+        .stdout(predicate::str::contains("for 2 steps"));
+    assert!(p("tuned/model.safetensors").exists() && p("tuned/finetune.json").exists());
+    let out = mte()
+        .args([
+            "--format",
+            "json",
+            "defend",
+            "probe",
+            "--batches",
+            "1",
+            "--batch-size",
+            "2",
+        ])
+        .arg("--original")
+        .arg(p("policy"))
+        .arg("--tuned")
+        .arg(p("tuned"))
+        .arg("--data")
+        .arg(p("demos"))
+        .arg("--patch")
+        .arg(p("patch"))
+        .assert()
+        .success();
+    let r: serde_json::Value = serde_json::from_slice(&out.get_output().stdout).unwrap();
+    let cos = r["cosine"].as_f64().unwrap();
+    assert!((-1.0..=1.0 + 1e-9).contains(&cos), "{r}");
+    assert!(r["grad_norm_ratio"].as_f64().unwrap() > 0.0, "{r}");
+    // A keypoint policy cannot carry a patch: a clear error, exit 2.
+    mte()
+        .args(["attack", "patch", "--policy"])
+        .arg(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../../assets/policies/pusht_keypoints_cpu"),
+        )
+        .arg("--data")
+        .arg(p("demos"))
+        .arg("--out")
+        .arg(p("nope"))
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("image policy"));
+}

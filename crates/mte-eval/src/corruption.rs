@@ -159,6 +159,13 @@ pub enum Fault {
     /// L-infinity `eps` (pixels in `[0, 1]`, or normalised keypoints), sign steps, a budget
     /// of `iterations`. The attacker is the same whichever arm is deployed.
     Pgd(mte_policy::PgdConfig),
+    /// A trained physical patch (`mte attack patch`, a directory with `patch.png` and
+    /// `patch.json`) drawn at its world position into every frame of a corrupted query's
+    /// window. Image policies only.
+    Patch {
+        /// The patch directory.
+        path: std::path::PathBuf,
+    },
     /// Oracle attack confined to the clean bracket: corrupted candidates take the bracket
     /// end that moves the coordinate-wise median farthest.
     Oracle {
@@ -178,6 +185,7 @@ impl Fault {
                 | Self::Occluder { .. }
                 | Self::MotionBlur { .. }
                 | Self::GaussianNoise { .. }
+                | Self::Patch { .. }
         )
     }
 
@@ -236,6 +244,14 @@ impl fmt::Display for Fault {
                 angle_deg,
             } => write!(f, "common-{magnitude}@{angle_deg}"),
             Self::Pgd(c) => write!(f, "pgd-{}", c.iterations),
+            Self::Patch { path } => write!(
+                f,
+                "patch-{}",
+                path.file_name().map_or_else(
+                    || path.display().to_string(),
+                    |n| n.to_string_lossy().into()
+                )
+            ),
             Self::Oracle { mode } => match mode {
                 OracleMode::Instant => f.write_str("oracle-inst"),
                 OracleMode::Drift => f.write_str("oracle-drift"),
@@ -331,6 +347,8 @@ impl CorruptionError {
 #[derive(Debug, Clone)]
 pub struct ObservationCorruptor {
     fault: Fault,
+    /// The loaded patch of a [`Fault::Patch`].
+    patch: Option<mte_sim::Patch>,
     /// Exteroceptive frame held while the camera is frozen.
     frozen: Option<Observation>,
 }
@@ -341,7 +359,17 @@ impl ObservationCorruptor {
     pub fn new(fault: Fault) -> Self {
         Self {
             fault,
+            patch: None,
             frozen: None,
+        }
+    }
+
+    /// A corruptor for [`Fault::Patch`] with its patch already loaded
+    /// ([`crate::patch_file::load`]).
+    pub fn with_patch(fault: Fault, patch: mte_sim::Patch) -> Self {
+        Self {
+            patch: Some(patch),
+            ..Self::new(fault)
         }
     }
 
@@ -401,6 +429,16 @@ impl ObservationCorruptor {
                     .clone();
                 for o in &mut win {
                     copy_extero(&held, o);
+                }
+            }
+            Fault::Patch { .. } => {
+                if let (Some(p), Some((w, h))) = (&self.patch, image_size) {
+                    for o in &mut win {
+                        if let Some(img) = o.image.as_mut() {
+                            // The runner checked the frame size when it loaded the patch.
+                            let _ = p.draw(img, w, h);
+                        }
+                    }
                 }
             }
             Fault::Occluder { size } => {
@@ -626,6 +664,34 @@ mod tests {
         }
         assert_eq!(w[0].image, w[1].image, "one position per query");
         assert!(Fault::Occluder { size: 0 }.validate().is_err());
+    }
+
+    #[test]
+    fn a_patch_is_drawn_into_every_frame_of_corrupted_queries_only() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        // 2 x 2 patch at world (256, 256): frame (3, 3) of an 8 x 8 frame.
+        let patch = mte_sim::Patch::new(vec![7; 12], 2, [256.0, 256.0]).expect("patch");
+        let fault = Fault::Patch {
+            path: "p/my-patch".into(),
+        };
+        assert!(fault.is_observation());
+        assert_eq!(fault.to_string(), "patch-my-patch");
+        let mut c = ObservationCorruptor::with_patch(fault, patch);
+        let frames = vec![frame(200, 100.0), frame(200, 100.0)];
+        for o in c.window(&frames, 2, true, Some((8, 8)), &mut rng) {
+            let img = o.image.expect("image");
+            for (i, &v) in img.iter().enumerate() {
+                let (x, y) = ((i / 3) % 8, i / 24);
+                let inside = (3..5).contains(&x) && (3..5).contains(&y);
+                assert_eq!(v, if inside { 7 } else { 200 }, "pixel ({x}, {y})");
+            }
+        }
+        let clean = c.window(&frames, 2, false, Some((8, 8)), &mut rng);
+        assert!(clean.iter().all(|o| {
+            o.image
+                .as_ref()
+                .is_some_and(|i| i.iter().all(|&p| p == 200))
+        }));
     }
 
     #[test]

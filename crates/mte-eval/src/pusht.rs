@@ -352,7 +352,30 @@ pub fn run_episode(
         }
         _ => None,
     };
-    let mut corruptor = ObservationCorruptor::new(fault.clone());
+    let mut corruptor = match fault {
+        Fault::Patch { path } => {
+            let Some((w, h)) = spec.needs.image else {
+                return Err(RolloutError::Config {
+                    field: "fault",
+                    value: fault.to_string(),
+                    expected: "an image policy (a patch is drawn into camera frames)".into(),
+                });
+            };
+            let (_, patch) = crate::patch_file::load(path).map_err(|e| RolloutError::Config {
+                field: "fault.path",
+                value: path.display().to_string(),
+                expected: format!("a patch directory ({e})"),
+            })?;
+            // Fails here, not per frame, if the texture does not fit the frame.
+            patch.origin(w, h).map_err(|e| RolloutError::Config {
+                field: "fault.path",
+                value: path.display().to_string(),
+                expected: e.to_string(),
+            })?;
+            ObservationCorruptor::with_patch(fault.clone(), patch)
+        }
+        _ => ObservationCorruptor::new(fault.clone()),
+    };
     let keep = corruptor.frames_needed(t_o).max(t_o + 1);
     let mut frames: Vec<Observation> = Vec::with_capacity(keep + 1);
     let mut chunk = Vec::new();

@@ -213,6 +213,29 @@ fn oracle_attacks_stay_inside_the_bracket_and_need_an_ensembler() -> TestResult 
 }
 
 #[test]
+fn a_patch_needs_an_image_policy_and_an_existing_patch() {
+    let c = CorruptionSpec {
+        fault: mte_eval::corruption::Fault::Patch {
+            path: "no/such/patch".into(),
+        },
+        schedule: mte_eval::corruption::Schedule::Dense { start: 0, end: 5 },
+    };
+    // NEEDS has no camera: refused before anything runs.
+    let e = run_episode(&Scripted::new(0.0), &spec(Execution::OpenLoop, &c, 2))
+        .expect_err("keypoint policy");
+    assert!(e.to_string().contains("image policy"), "{e}");
+    let s = EpisodeSpec {
+        needs: ObsNeeds {
+            image: Some((96, 96)),
+            ..NEEDS
+        },
+        ..spec(Execution::OpenLoop, &c, 2)
+    };
+    let e = run_episode(&Scripted::new(0.0), &s).expect_err("missing patch directory");
+    assert!(e.to_string().contains("no/such/patch"), "{e}");
+}
+
+#[test]
 fn bad_stride_is_a_typed_error() {
     let e = run_episode(
         &Scripted::new(0.0),

@@ -1,4 +1,4 @@
-//! `mte attack calibrate`.
+//! `mte attack calibrate`, `mte attack patch`, `mte defend finetune`, `mte defend probe`.
 
 use std::io::Write as _;
 
@@ -66,6 +66,194 @@ pub fn calibrate(cli: &Cli, a: &CalibrateArgs) -> Result<()> {
                 )?;
             }
         }
+    }
+    Ok(())
+}
+
+fn parse_center(s: &str) -> Result<[f64; 2]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("--center {s:?}: expected \"x,y\" in world px"))?;
+    ensure!(
+        v.len() == 2,
+        "--center {s:?}: expected two numbers \"x,y\" in world px"
+    );
+    Ok([v[0], v[1]])
+}
+
+fn image_frame(policy: &mte_policy::DiffusionPolicy) -> Result<(usize, usize)> {
+    match policy.config().image_shape() {
+        Some([_, h, w]) => Ok((w, h)),
+        None => anyhow::bail!("the policy has no camera input: a patch needs an image policy"),
+    }
+}
+
+/// `mte attack patch`
+pub fn patch(cli: &Cli, a: &crate::args::AttackPatchArgs) -> Result<()> {
+    use mte_policy::patch::{Ascent, PatchConfig, train_patch};
+    let center = parse_center(&a.center)?;
+    let policy = mte_policy::checkpoint::load(&a.policy, &candle_core::Device::Cpu)
+        .with_context(|| format!("loading {}", a.policy.display()))?;
+    let (w, h) = image_frame(&policy)?;
+    ensure!(
+        a.side >= 1 && a.side <= w.min(h),
+        "--side {}: expected 1..={}",
+        a.side,
+        w.min(h)
+    );
+    // The world -> frame placement the simulator draws with, so training and evaluation agree.
+    let probe = mte_sim::Patch::new(vec![0; a.side * a.side * 3], a.side, center)?;
+    let (x, y) = probe.origin(w, h)?;
+    let cfg = PatchConfig {
+        side: a.side,
+        origin: [x, y],
+        epochs: a.epochs,
+        batches_per_epoch: a.batches_per_epoch,
+        batch_size: a.batch_size,
+        step: a.step,
+        ascent: match a.ascent {
+            crate::args::AscentArg::Sign => Ascent::Sign,
+            crate::args::AscentArg::Raw => Ascent::Raw,
+        },
+        seed: a.seed,
+    };
+    let data = crate::cmd::train::load_train_data(&a.data, policy.config())?;
+    let t0 = std::time::Instant::now();
+    let quiet = cli.quiet;
+    let report = train_patch(&policy, &data, &cfg, &|epoch, loss| {
+        if !quiet {
+            eprintln!(
+                "epoch {}/{}: mean policy loss {loss:.4}",
+                epoch + 1,
+                cfg.epochs
+            );
+        }
+    })?;
+    let meta = mte_eval::patch_file::PatchMeta::new(&cfg, &report, center, [w, h], &a.policy);
+    mte_eval::patch_file::save(&a.out, &meta, &report.rgb_u8())?;
+    let secs = t0.elapsed().as_secs_f64();
+    let mut so = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(so, "{}", serde_json::json!({"meta": meta, "seconds": secs}))?,
+        Format::Text => writeln!(
+            so,
+            "patch {s}x{s} at world ({:.0}, {:.0}) = frame ({x}, {y}): loss {:.4} -> {:.4} over {} epochs in {secs:.0} s -> {}",
+            center[0],
+            center[1],
+            report.initial_loss,
+            report.epoch_loss.last().copied().unwrap_or(f64::NAN),
+            cfg.epochs,
+            a.out.display(),
+            s = a.side
+        )?,
+    }
+    Ok(())
+}
+
+/// `mte defend finetune`
+pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
+    use mte_policy::patch::{FinetuneConfig, finetune_encoder, rgb_to_texture};
+    let dev = candle_core::Device::Cpu;
+    let (policy, varmap) = mte_policy::checkpoint::load_trainable(&a.policy, &dev)
+        .with_context(|| format!("loading {}", a.policy.display()))?;
+    image_frame(&policy)?;
+    let (meta, patch) = mte_eval::patch_file::load(&a.patch)?;
+    let texture = rgb_to_texture(patch.rgb(), meta.side);
+    let data = crate::cmd::train::load_train_data(&a.data, policy.config())?;
+    let cfg = FinetuneConfig {
+        steps: a.steps,
+        lr: a.lr,
+        consistency: a.consistency,
+        batch_size: a.batch_size,
+        regenerate: a.regenerate,
+        seed: a.seed,
+        ..FinetuneConfig::default()
+    };
+    let t0 = std::time::Instant::now();
+    let quiet = cli.quiet;
+    let report = finetune_encoder(
+        &policy,
+        &varmap,
+        &data,
+        &texture,
+        meta.side,
+        &cfg,
+        &|s, l| {
+            if !quiet && (s + 1) % 100 == 0 {
+                eprintln!("step {}/{}: loss {l:.4}", s + 1, cfg.steps);
+            }
+        },
+    )?;
+    let weights: std::collections::HashMap<String, candle_core::Tensor> = varmap
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("variable map poisoned"))?
+        .iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+        .collect();
+    mte_policy::checkpoint::save(&a.out, policy.config(), &weights, policy.stats())?;
+    let secs = t0.elapsed().as_secs_f64();
+    let summary = serde_json::json!({
+        "policy": a.policy, "patch": a.patch, "config": cfg, "report": {
+            "steps": report.steps, "encoder_tensors": report.encoder_tensors,
+            "first_loss": report.first_loss, "last_loss": report.last_loss,
+            "first_consistency": report.first_consistency,
+            "last_consistency": report.last_consistency,
+        }, "seconds": secs,
+    });
+    std::fs::write(a.out.join("finetune.json"), format!("{summary:#}\n"))
+        .with_context(|| format!("writing {}", a.out.join("finetune.json").display()))?;
+    let mut so = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(so, "{summary}")?,
+        Format::Text => writeln!(
+            so,
+            "fine-tuned {} encoder tensors for {} steps in {secs:.0} s: loss {:.4} -> {:.4}, consistency {:.4} -> {:.4} -> {}",
+            report.encoder_tensors,
+            report.steps,
+            report.first_loss,
+            report.last_loss,
+            report.first_consistency,
+            report.last_consistency,
+            a.out.display()
+        )?,
+    }
+    Ok(())
+}
+
+/// `mte defend probe`
+pub fn probe(cli: &Cli, a: &crate::args::ProbeArgs) -> Result<()> {
+    use mte_policy::patch::{gradient_probe, rgb_to_texture};
+    let dev = candle_core::Device::Cpu;
+    let load = |p: &std::path::Path| {
+        mte_policy::checkpoint::load(p, &dev).with_context(|| format!("loading {}", p.display()))
+    };
+    let (original, tuned) = (load(&a.original)?, load(&a.tuned)?);
+    let (w, h) = image_frame(&original)?;
+    let (meta, patch) = mte_eval::patch_file::load(&a.patch)?;
+    let origin = patch.origin(w, h)?;
+    let data = crate::cmd::train::load_train_data(&a.data, original.config())?;
+    let r = gradient_probe(
+        &original,
+        &tuned,
+        &data,
+        &rgb_to_texture(patch.rgb(), meta.side),
+        meta.side,
+        origin,
+        a.batches,
+        a.batch_size,
+        a.seed,
+    )?;
+    let mut so = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(so, "{}", serde_json::json!(r))?,
+        Format::Text => writeln!(
+            so,
+            "gradient probe over {} batches: cosine {:.3}, gradient norm ratio (tuned/original) {:.3}, latent displacement ratio {:.3}",
+            r.batches, r.cosine, r.grad_norm_ratio, r.latent_displacement_ratio
+        )?,
     }
     Ok(())
 }

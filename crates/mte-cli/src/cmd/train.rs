@@ -36,55 +36,7 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         config = config.with_overrides(&patch)?;
     }
     config.validate().context("check the preset and --config")?;
-    let ds =
-        Dataset::load(&a.data).with_context(|| format!("loading dataset {}", a.data.display()))?;
-    let need = |name: &str| -> Result<Vec<f32>> {
-        Ok(ds
-            .feature(name)
-            .with_context(|| format!("the policy needs `{name}`: regenerate with --obs"))?
-            .to_vec())
-    };
-    let env_state = if obs == ObsKind::Keypoints {
-        Some(need(names::ENV_STATE)?)
-    } else {
-        None
-    };
-    let images = if obs == ObsKind::Image {
-        let shape = &ds
-            .info
-            .features
-            .get(names::IMAGE)
-            .context("the dataset has no images: regenerate with --obs pixels")?
-            .shape;
-        anyhow::ensure!(
-            config.image_shape() == Some([3, shape[0], shape[1]]),
-            "dataset images are {}x{}, the policy expects {:?} (C, H, W)",
-            shape[0],
-            shape[1],
-            config.image_shape()
-        );
-        ds.images.clone()
-    } else {
-        None
-    };
-    let stats = stats_from(ds.stats.iter().map(|(k, s)| {
-        (
-            k.clone(),
-            s.min.clone(),
-            s.max.clone(),
-            s.mean.clone(),
-            s.std.clone(),
-        )
-    }));
-    let data = TrainData {
-        state: need(names::STATE)?,
-        env_state,
-        images,
-        action: need(names::ACTION)?,
-        episode_lengths: ds.episode_lengths(),
-        episode_success: ds.episodes.iter().map(|e| e.success).collect(),
-        stats,
-    };
+    let data = load_train_data(&a.data, &config)?;
     let tc = TrainConfig {
         steps: a.steps,
         batch_size: a.batch_size,
@@ -140,4 +92,57 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The arrays a policy of `config` trains (or is attacked / fine-tuned) on, from an
+/// `mte data generate` dataset.
+pub fn load_train_data(dir: &std::path::Path, config: &DiffusionConfig) -> Result<TrainData> {
+    let ds = Dataset::load(dir).with_context(|| format!("loading dataset {}", dir.display()))?;
+    let need = |name: &str| -> Result<Vec<f32>> {
+        Ok(ds
+            .feature(name)
+            .with_context(|| format!("the policy needs `{name}`: regenerate with --obs"))?
+            .to_vec())
+    };
+    let env_state = if config.image_shape().is_none() {
+        Some(need(names::ENV_STATE)?)
+    } else {
+        None
+    };
+    let images = if config.image_shape().is_some() {
+        let shape = &ds
+            .info
+            .features
+            .get(names::IMAGE)
+            .context("the dataset has no images: regenerate with --obs pixels")?
+            .shape;
+        anyhow::ensure!(
+            config.image_shape() == Some([3, shape[0], shape[1]]),
+            "dataset images are {}x{}, the policy expects {:?} (C, H, W)",
+            shape[0],
+            shape[1],
+            config.image_shape()
+        );
+        ds.images.clone()
+    } else {
+        None
+    };
+    let stats = stats_from(ds.stats.iter().map(|(k, s)| {
+        (
+            k.clone(),
+            s.min.clone(),
+            s.max.clone(),
+            s.mean.clone(),
+            s.std.clone(),
+        )
+    }));
+    Ok(TrainData {
+        state: need(names::STATE)?,
+        env_state,
+        images,
+        action: need(names::ACTION)?,
+        episode_lengths: ds.episode_lengths(),
+        episode_success: ds.episodes.iter().map(|e| e.success).collect(),
+        stats,
+    })
 }

@@ -1,0 +1,219 @@
+//! A trained physical patch on disk: `patch.png` (the texture, RGB, one pixel per
+//! observation pixel) and `patch.json` ([`PatchMeta`]: where it sits in the world, how it was
+//! trained, against which policy).
+
+use std::fs;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+
+use mte_policy::patch::{Ascent, PatchConfig, PatchReport};
+use mte_sim::Patch;
+use serde::{Deserialize, Serialize};
+
+/// Format tag of `patch.json`.
+pub const PATCH_FORMAT: &str = "mte-patch-v1";
+/// Texture file name.
+pub const PNG: &str = "patch.png";
+/// Metadata file name.
+pub const JSON: &str = "patch.json";
+
+/// Errors reading or writing a patch directory.
+#[derive(Debug, thiserror::Error)]
+pub enum PatchFileError {
+    /// A file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// Malformed JSON.
+    #[error("{path}: {source}")]
+    Json {
+        /// The file.
+        path: PathBuf,
+        /// Cause.
+        source: serde_json::Error,
+    },
+    /// A PNG that is not an 8-bit RGB square of the recorded side, or undecodable.
+    #[error("{path}: {reason}")]
+    Png {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The texture and metadata do not make a patch.
+    #[error(transparent)]
+    Patch(#[from] mte_sim::PatchError),
+}
+
+/// `patch.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PatchMeta {
+    /// Always [`PATCH_FORMAT`].
+    pub format: String,
+    /// Texture side (observation px).
+    pub side: usize,
+    /// Centre (world px, 512 x 512 canvas, y down).
+    pub center: [f64; 2],
+    /// Top-left pixel in the policy's frame at training time.
+    pub origin: [usize; 2],
+    /// Frame (width, height) it was trained for.
+    pub frame: [usize; 2],
+    /// Ascent rule.
+    pub ascent: Ascent,
+    /// Step size.
+    pub step: f64,
+    /// Epochs.
+    pub epochs: usize,
+    /// Batches per epoch.
+    pub batches_per_epoch: usize,
+    /// Windows per batch.
+    pub batch_size: usize,
+    /// Seed.
+    pub seed: u64,
+    /// Mean policy loss in the first epoch.
+    pub initial_loss: f64,
+    /// Mean policy loss per epoch.
+    pub epoch_loss: Vec<f64>,
+    /// Checkpoint attacked.
+    pub policy: String,
+}
+
+impl PatchMeta {
+    /// Metadata of a training run.
+    pub fn new(
+        cfg: &PatchConfig,
+        report: &PatchReport,
+        center: [f64; 2],
+        frame: [usize; 2],
+        policy: &Path,
+    ) -> Self {
+        PatchMeta {
+            format: PATCH_FORMAT.into(),
+            side: report.side,
+            center,
+            origin: [report.origin.0, report.origin.1],
+            frame,
+            ascent: cfg.ascent,
+            step: cfg.step,
+            epochs: cfg.epochs,
+            batches_per_epoch: cfg.batches_per_epoch,
+            batch_size: cfg.batch_size,
+            seed: cfg.seed,
+            initial_loss: report.initial_loss,
+            epoch_loss: report.epoch_loss.clone(),
+            policy: policy.display().to_string(),
+        }
+    }
+}
+
+/// Write `patch.png` and `patch.json` into `dir` (created if needed).
+pub fn save(dir: &Path, meta: &PatchMeta, rgb: &[u8]) -> Result<(), PatchFileError> {
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| PatchFileError::Io { path, source }
+    };
+    fs::create_dir_all(dir).map_err(io(dir))?;
+    let png_path = dir.join(PNG);
+    let file = fs::File::create(&png_path).map_err(io(&png_path))?;
+    let side = u32::try_from(meta.side).map_err(|_| PatchFileError::Png {
+        path: png_path.clone(),
+        reason: format!("side {} too large", meta.side),
+    })?;
+    let mut enc = png::Encoder::new(BufWriter::new(file), side, side);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let png_err = |e: png::EncodingError| PatchFileError::Png {
+        path: png_path.clone(),
+        reason: e.to_string(),
+    };
+    let mut w = enc.write_header().map_err(png_err)?;
+    w.write_image_data(rgb).map_err(png_err)?;
+    w.finish().map_err(png_err)?;
+    let json_path = dir.join(JSON);
+    let text = serde_json::to_string_pretty(meta).map_err(|source| PatchFileError::Json {
+        path: json_path.clone(),
+        source,
+    })?;
+    fs::write(&json_path, text + "\n").map_err(io(&json_path))
+}
+
+/// Read a patch directory: its metadata and the world-placed [`Patch`].
+pub fn load(dir: &Path) -> Result<(PatchMeta, Patch), PatchFileError> {
+    let json_path = dir.join(JSON);
+    let text = fs::read_to_string(&json_path).map_err(|source| PatchFileError::Io {
+        path: json_path.clone(),
+        source,
+    })?;
+    let meta: PatchMeta = serde_json::from_str(&text).map_err(|source| PatchFileError::Json {
+        path: json_path.clone(),
+        source,
+    })?;
+    let png_path = dir.join(PNG);
+    let bad = |reason: String| PatchFileError::Png {
+        path: png_path.clone(),
+        reason,
+    };
+    let file = fs::File::open(&png_path).map_err(|source| PatchFileError::Io {
+        path: png_path.clone(),
+        source,
+    })?;
+    let mut reader = png::Decoder::new(std::io::BufReader::new(file))
+        .read_info()
+        .map_err(|e| bad(e.to_string()))?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader
+        .next_frame(&mut buf)
+        .map_err(|e| bad(e.to_string()))?;
+    if info.color_type != png::ColorType::Rgb
+        || info.bit_depth != png::BitDepth::Eight
+        || info.width as usize != meta.side
+        || info.height as usize != meta.side
+    {
+        return Err(bad(format!(
+            "{}x{} {:?} {:?}: expected a {s}x{s} 8-bit RGB image (patch.json side {s})",
+            info.width,
+            info.height,
+            info.color_type,
+            info.bit_depth,
+            s = meta.side
+        )));
+    }
+    buf.truncate(info.buffer_size());
+    let patch = Patch::new(buf, meta.side, meta.center)?;
+    Ok((meta, patch))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trips_and_rejects_a_mismatched_png() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let cfg = PatchConfig::default();
+        let report = PatchReport {
+            texture: vec![0.25; 3 * 16 * 16],
+            side: 16,
+            origin: (40, 40),
+            initial_loss: 0.1,
+            epoch_loss: vec![0.1, 0.2],
+        };
+        let meta = PatchMeta::new(&cfg, &report, [256.0, 256.0], [96, 96], Path::new("ck"));
+        let rgb: Vec<u8> = (0..16 * 16 * 3).map(|i| (i % 251) as u8).collect();
+        save(dir.path(), &meta, &rgb).expect("save");
+        let (m, p) = load(dir.path()).expect("load");
+        assert_eq!(m, meta);
+        assert_eq!(p.rgb(), &rgb[..]);
+        assert_eq!(p.origin(96, 96).expect("fits"), (40, 40));
+        let mut wrong = meta.clone();
+        wrong.side = 8;
+        let text = serde_json::to_string(&wrong).expect("json");
+        fs::write(dir.path().join(JSON), text).expect("write");
+        let e = load(dir.path()).expect_err("16 px png, 8 px metadata");
+        assert!(e.to_string().contains("expected a 8x8"), "{e}");
+    }
+}

@@ -70,6 +70,27 @@ pub fn calibrate(cli: &Cli, a: &CalibrateArgs) -> Result<()> {
     Ok(())
 }
 
+/// A progress bar on stderr with the latest loss (hidden when quiet or not a terminal).
+fn loss_bar(cli: &Cli, len: usize, what: &str) -> indicatif::ProgressBar {
+    let show =
+        !cli.no_progress && !cli.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let bar = indicatif::ProgressBar::with_draw_target(
+        Some(len as u64),
+        if show {
+            indicatif::ProgressDrawTarget::stderr()
+        } else {
+            indicatif::ProgressDrawTarget::hidden()
+        },
+    );
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(&format!(
+            "{what} [{{elapsed_precise}}] {{wide_bar}} {{pos}}/{{len}} {{msg}}"
+        ))
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    bar
+}
+
 fn parse_center(s: &str) -> Result<[f64; 2]> {
     let v: Vec<f64> = s
         .split(',')
@@ -121,16 +142,12 @@ pub fn patch(cli: &Cli, a: &crate::args::AttackPatchArgs) -> Result<()> {
     };
     let data = crate::cmd::train::load_train_data(&a.data, policy.config())?;
     let t0 = std::time::Instant::now();
-    let quiet = cli.quiet;
+    let bar = loss_bar(cli, cfg.epochs, "patch epochs");
     let report = train_patch(&policy, &data, &cfg, &|epoch, loss| {
-        if !quiet {
-            eprintln!(
-                "epoch {}/{}: mean policy loss {loss:.4}",
-                epoch + 1,
-                cfg.epochs
-            );
-        }
+        bar.set_position(epoch as u64 + 1);
+        bar.set_message(format!("policy loss {loss:.4}"));
     })?;
+    bar.finish_and_clear();
     let meta = mte_eval::patch_file::PatchMeta::new(&cfg, &report, center, [w, h], &a.policy);
     mte_eval::patch_file::save(&a.out, &meta, &report.rgb_u8())?;
     let secs = t0.elapsed().as_secs_f64();
@@ -172,7 +189,7 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
         ..FinetuneConfig::default()
     };
     let t0 = std::time::Instant::now();
-    let quiet = cli.quiet;
+    let bar = loss_bar(cli, cfg.steps, "fine-tune");
     let report = finetune_encoder(
         &policy,
         &varmap,
@@ -181,11 +198,11 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
         meta.side,
         &cfg,
         &|s, l| {
-            if !quiet && (s + 1) % 100 == 0 {
-                eprintln!("step {}/{}: loss {l:.4}", s + 1, cfg.steps);
-            }
+            bar.set_position(s as u64 + 1);
+            bar.set_message(format!("loss {l:.4}"));
         },
     )?;
+    bar.finish_and_clear();
     let weights: std::collections::HashMap<String, candle_core::Tensor> = varmap
         .data()
         .lock()

@@ -483,12 +483,23 @@ fn poisoned() -> SweepError {
     field("writer", "poisoned lock", "a worker that did not panic")
 }
 
-/// Resolves relative policy paths against `base` (the spec file's directory).
+/// Resolves relative policy and patch paths against `base` (the spec file's directory),
+/// where they do not exist relative to the working directory but do relative to `base`.
 pub fn resolve_policies(spec: &mut SweepSpec, base: &Path) {
+    let resolve = |path: &Path| -> Option<PathBuf> {
+        (path.is_relative() && !path.exists() && base.join(path).exists())
+            .then(|| base.join(path))
+    };
     for p in &mut spec.policies {
-        let path = PathBuf::from(&*p);
-        if path.is_relative() && !path.exists() && base.join(&path).exists() {
-            *p = base.join(path).to_string_lossy().into_owned();
+        if let Some(r) = resolve(Path::new(&*p)) {
+            *p = r.to_string_lossy().into_owned();
+        }
+    }
+    for c in &mut spec.corruptions {
+        if let Fault::Patch { path } = &mut c.fault
+            && let Some(r) = resolve(path)
+        {
+            *path = r;
         }
     }
 }

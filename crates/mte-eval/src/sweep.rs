@@ -487,8 +487,7 @@ fn poisoned() -> SweepError {
 /// where they do not exist relative to the working directory but do relative to `base`.
 pub fn resolve_policies(spec: &mut SweepSpec, base: &Path) {
     let resolve = |path: &Path| -> Option<PathBuf> {
-        (path.is_relative() && !path.exists() && base.join(path).exists())
-            .then(|| base.join(path))
+        (path.is_relative() && !path.exists() && base.join(path).exists()).then(|| base.join(path))
     };
     for p in &mut spec.policies {
         if let Some(r) = resolve(Path::new(&*p)) {

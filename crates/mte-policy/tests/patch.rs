@@ -77,10 +77,14 @@ fn eval_loss(p: &DiffusionPolicy, d: &TrainData, texture: &Tensor, origin: [usiz
     let win = Windows::new(d, p.config(), false);
     let mut rng = ChaCha8Rng::seed_from_u64(99);
     let mut total = 0.0;
-    for _ in 0..4 {
+    for _ in 0..8 {
         let (obs, x0) = sample_batch(p, d, &win, 8, &mut rng, false).expect("batch");
         let x0 = Tensor::from_vec(x0, (8, 16, 2), &Device::Cpu).expect("x0");
-        let eps = Tensor::randn(0f32, 1.0, (8, 16, 2), &Device::Cpu).expect("eps");
+        // Seeded noise (candle's `randn` draws from a global generator).
+        let eps: Vec<f32> = (0..8 * 16 * 2)
+            .map(|_| rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng))
+            .collect();
+        let eps = Tensor::from_vec(eps, (8, 16, 2), &Device::Cpu).expect("eps");
         let ts = [5usize, 20, 35, 50, 65, 80, 90, 99];
         let imgs = paste(
             obs.image.as_ref().expect("img"),
@@ -97,7 +101,7 @@ fn eval_loss(p: &DiffusionPolicy, d: &TrainData, texture: &Tensor, origin: [usiz
         let l = p.loss(&cond, &x0, &eps, &ts, None).expect("loss");
         total += f64::from(l.to_scalar::<f32>().expect("scalar"));
     }
-    total / 4.0
+    total / 8.0
 }
 
 #[test]
@@ -133,28 +137,30 @@ fn a_trained_patch_raises_the_loss_stays_in_range_and_is_reproducible() {
     let (p, _vm) = tiny(1);
     let d = data();
     let cfg = PatchConfig {
-        side: 16,
+        side: 32,
         origin: [30, 30],
-        epochs: 3,
-        batches_per_epoch: 3,
+        epochs: 4,
+        batches_per_epoch: 4,
         batch_size: 8,
-        step: 5e-2,
+        step: 0.1,
         ascent: Ascent::Sign,
         seed: 3,
     };
     let r = train_patch(&p, &d, &cfg, &|_, _| {}).expect("train");
-    assert_eq!(r.texture.len(), 3 * 16 * 16);
-    assert_eq!(r.epoch_loss.len(), 3);
+    assert_eq!(r.texture.len(), 3 * 32 * 32);
+    assert_eq!(r.epoch_loss.len(), 4);
     assert!(r.texture.iter().all(|v| (0.0..=1.0).contains(v)));
-    let grey = Tensor::full(0.5f32, (3, 16, 16), &Device::Cpu).expect("grey");
-    let trained = Tensor::from_vec(r.texture.clone(), (3, 16, 16), &Device::Cpu).expect("t");
+    let grey = Tensor::full(0.5f32, (3, 32, 32), &Device::Cpu).expect("grey");
+    let trained = Tensor::from_vec(r.texture.clone(), (3, 32, 32), &Device::Cpu).expect("t");
+    // Every draw is seeded, so this is deterministic; measured 1.2208 -> 1.2518 (+2.5%), and
+    // a patch that did not climb the loss would not clear +1%.
     let (l0, l1) = (
         eval_loss(&p, &d, &grey, [30, 30]),
         eval_loss(&p, &d, &trained, [30, 30]),
     );
     assert!(
-        l1 > l0,
-        "held-out loss with the trained patch {l1} <= grey patch {l0}"
+        l1 > l0 * 1.01,
+        "held-out loss with the trained patch {l1} not 1% above the grey patch's {l0}"
     );
     let again = train_patch(&p, &d, &cfg, &|_, _| {}).expect("train again");
     assert_eq!(again.texture, r.texture, "same seed, same patch");

@@ -97,6 +97,21 @@ fn stats_from_old(
 
 /// Load a checkpoint directory onto `device`. Errors name the missing or misshapen key.
 pub fn load(dir: &Path, device: &Device) -> Result<DiffusionPolicy, PolicyError> {
+    let (config, weights, stats) = read_checkpoint(dir, device)?;
+    let wpath = dir.join(WEIGHTS);
+    let vb = VarBuilder::from_tensors(weights, DType::F32, device);
+    DiffusionPolicy::new(config, stats, vb).map_err(|e| match e {
+        PolicyError::Candle(err) => ck(&wpath, err.to_string()),
+        other => other,
+    })
+}
+
+/// A checkpoint directory's config, weights (LeRobot key names) and statistics (from either
+/// layout).
+fn read_checkpoint(
+    dir: &Path,
+    device: &Device,
+) -> Result<(DiffusionConfig, HashMap<String, Tensor>, StatsMap), PolicyError> {
     let config = DiffusionConfig::from_file(&dir.join(CONFIG))?;
     let wpath = dir.join(WEIGHTS);
     let weights = read_tensors(&wpath, device)?;
@@ -120,11 +135,7 @@ pub fn load(dir: &Path, device: &Device) -> Result<DiffusionPolicy, PolicyError>
     for f in files {
         stats_from_flat(&read_tensors(&f, device)?, &mut stats)?;
     }
-    let vb = VarBuilder::from_tensors(weights, DType::F32, device);
-    DiffusionPolicy::new(config, stats, vb).map_err(|e| match e {
-        PolicyError::Candle(err) => ck(&wpath, err.to_string()),
-        other => other,
-    })
+    Ok((config, weights, stats))
 }
 
 /// Load a checkpoint as trainable variables: the policy and the [`VarMap`] holding its
@@ -133,12 +144,11 @@ pub fn load_trainable(
     dir: &Path,
     device: &Device,
 ) -> Result<(DiffusionPolicy, VarMap), PolicyError> {
-    let fixed = load(dir, device)?;
+    let (config, weights, stats) = read_checkpoint(dir, device)?;
     let wpath = dir.join(WEIGHTS);
-    let weights = read_tensors(&wpath, device)?;
     let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, device);
-    let policy = DiffusionPolicy::new(fixed.config().clone(), fixed.stats().clone(), vb)?;
+    let policy = DiffusionPolicy::new(config, stats, vb)?;
     let vars = varmap
         .data()
         .lock()

@@ -292,15 +292,32 @@ impl DiffusionPolicy {
     }
 
     fn global_cond_impl(&self, obs: &ObsBatch, cropped: bool) -> Result<Tensor, PolicyError> {
+        let features = match (&self.rgb, &obs.image) {
+            (Some(enc), Some(img)) => {
+                let img = self.normalize_image(img)?;
+                Some(if cropped {
+                    enc.forward_cropped(&img)?
+                } else {
+                    enc.forward(&img)?
+                })
+            }
+            _ => None,
+        };
+        self.global_cond_from_features(obs, features.as_ref())
+    }
+
+    /// The global conditioning of `obs` with its image features already computed
+    /// (`(B n_obs_steps, 2K)`, e.g. by [`DiffusionPolicy::image_features`]); `obs.image` is
+    /// not read. For callers that need the features themselves too (the fine-tuning
+    /// consistency term), so the encoder runs once.
+    pub fn global_cond_from_features(
+        &self,
+        obs: &ObsBatch,
+        features: Option<&Tensor>,
+    ) -> Result<Tensor, PolicyError> {
         let (b, t_o, _) = obs.state.dims3()?;
         let mut parts = vec![obs.state.clone()];
-        if let (Some(enc), Some(img)) = (&self.rgb, &obs.image) {
-            let img = self.normalize_image(img)?;
-            let f = if cropped {
-                enc.forward_cropped(&img)?
-            } else {
-                enc.forward(&img)?
-            };
+        if let (Some(enc), Some(f)) = (&self.rgb, features) {
             parts.push(f.reshape((b, t_o, enc.feature_dim()))?);
         }
         if let Some(e) = &obs.env {

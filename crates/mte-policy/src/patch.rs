@@ -451,9 +451,11 @@ pub fn finetune_encoder(
             }
         }
         let attacked = paste(clean, &patch, x, y)?;
-        let task = loss_with(policy, &b, &attacked)?;
-        let f_clean = policy.image_features(clean)?.detach();
+        // The encoder runs once on the attacked batch: its features feed both terms.
         let f_att = policy.image_features(&attacked)?;
+        let cond = policy.global_cond_from_features(&b.obs, Some(&f_att))?;
+        let task = policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)?;
+        let f_clean = policy.image_features(clean)?.detach();
         let consistency = (f_att - f_clean)?.sqr()?.sum(D::Minus1)?.mean_all()?;
         let total = (task + (&consistency * cfg.consistency)?)?;
         let grads = total.backward()?;

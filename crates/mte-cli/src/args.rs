@@ -116,6 +116,38 @@ pub struct EvalPolicyArgs {
 pub enum TrainCommand {
     /// Train Diffusion Policy on an `mte data generate` dataset.
     Diffusion(TrainDiffusionArgs),
+    /// Pre-train an image policy's encoder to regress the block keypoints (a warm start for
+    /// `train diffusion --init`; the dataset needs `--obs keypoints,pixels`).
+    Encoder(TrainEncoderArgs),
+}
+
+/// `mte train encoder`
+#[derive(Debug, Args)]
+pub struct TrainEncoderArgs {
+    /// Dataset directory (from `mte data generate --obs state,keypoints,pixels`).
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Model preset (its encoder width, crop and keypoint count).
+    #[arg(long, value_enum, default_value_t = PresetArg::Cpu)]
+    pub preset: PresetArg,
+    /// JSON file of config fields overriding the preset.
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Optimiser steps.
+    #[arg(long, default_value_t = 2_000)]
+    pub steps: usize,
+    /// Frames per batch.
+    #[arg(long, default_value_t = 64)]
+    pub batch_size: usize,
+    /// Peak learning rate.
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f64,
+    /// Seed of the initialisation and every draw.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Output directory: encoder.safetensors and pretrain.json.
+    #[arg(long, short, value_name = "DIR")]
+    pub out: PathBuf,
 }
 
 /// Model presets.
@@ -163,6 +195,14 @@ pub struct TrainDiffusionArgs {
     /// Checkpoint every this many steps.
     #[arg(long, default_value_t = 2_000)]
     pub checkpoint_every: usize,
+    /// Start from these weights (a safetensors file with LeRobot keys, e.g. the
+    /// encoder.safetensors of `mte train encoder`, or a model.safetensors); ignored on resume.
+    #[arg(long, value_name = "FILE")]
+    pub init: Option<PathBuf>,
+    /// Keep the image encoder fixed and cache each frame's features (centre crop): a step
+    /// then costs about what a keypoint policy's does.
+    #[arg(long)]
+    pub freeze_encoder: bool,
     /// Output directory; if it holds a training state, training resumes from it.
     #[arg(long, short, value_name = "DIR")]
     pub out: PathBuf,

@@ -437,9 +437,34 @@ fn patch_finetune_and_probe_run_end_to_end() {
         r#"{"down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8, "spatial_softmax_num_keypoints": 4}"#,
     )
     .unwrap();
+    // The encoder warm start, then a policy on top of it with the encoder frozen.
+    mte()
+        .args(["--format", "json", "train", "encoder", "--steps", "2"])
+        .args(["--batch-size", "4", "--data"])
+        .arg(p("demos"))
+        .arg("--config")
+        .arg(&tiny)
+        .arg("--out")
+        .arg(p("enc"))
+        .assert()
+        .success()
+        .stdout(predicate::str::contains("\"heldout_mae\""));
+    let pre: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(p("enc/pretrain.json")).unwrap()).unwrap();
+    assert_eq!(pre["report"]["steps"], 2);
+    assert!(pre["report"]["final_loss"].as_f64().unwrap().is_finite());
     mte()
         .args(["train", "diffusion", "--obs", "image", "--steps", "2"])
-        .args(["--batch-size", "4", "--checkpoint-every", "0", "--data"])
+        .args([
+            "--batch-size",
+            "4",
+            "--checkpoint-every",
+            "0",
+            "--freeze-encoder",
+        ])
+        .arg("--init")
+        .arg(p("enc/encoder.safetensors"))
+        .arg("--data")
         .arg(p("demos"))
         .arg("--config")
         .arg(&tiny)

@@ -10,6 +10,7 @@ pub mod kernels;
 pub mod model;
 pub mod normalize;
 pub mod patch;
+pub mod pretrain;
 pub mod scheduler;
 pub mod train;
 pub mod unet;

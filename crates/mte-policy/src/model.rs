@@ -335,6 +335,15 @@ impl DiffusionPolicy {
         Ok(enc.forward(&self.normalize_image(img)?)?)
     }
 
+    /// [`DiffusionPolicy::image_features`] for frames already cropped to the encoder's crop
+    /// (training's random crops).
+    pub fn image_features_cropped(&self, img: &Tensor) -> Result<Tensor, PolicyError> {
+        let enc = self.rgb.as_ref().ok_or_else(|| {
+            config_err("input_features", "no observation.image", "an image policy")
+        })?;
+        Ok(enc.forward_cropped(&self.normalize_image(img)?)?)
+    }
+
     fn normalize_image(&self, img: &Tensor) -> Result<Tensor, PolicyError> {
         match &self.image_norm {
             Some((mean, std)) => {

@@ -40,6 +40,17 @@ pub struct TrainConfig {
     pub checkpoint_every: usize,
     /// Only train on windows of successful episodes.
     pub successful_only: bool,
+    /// A safetensors file whose tensors replace the seeded initialisation of the variables
+    /// they name (LeRobot keys, e.g. `diffusion.rgb_encoder.…` from
+    /// [`crate::pretrain::pretrain_encoder`], or a whole `model.safetensors`). Every key must
+    /// be a variable of the policy with the same shape. Ignored when resuming.
+    #[serde(default)]
+    pub init: Option<PathBuf>,
+    /// Keep the image encoder fixed: its variables are not optimised, and each frame's
+    /// features are computed once (centre crop, as at evaluation) and reused, which makes a
+    /// step cost about as much as a keypoint policy's. An mte extension for CPU training.
+    #[serde(default)]
+    pub freeze_encoder: bool,
 }
 
 impl Default for TrainConfig {
@@ -52,6 +63,8 @@ impl Default for TrainConfig {
             seed: 100_000,
             checkpoint_every: 2_000,
             successful_only: false,
+            init: None,
+            freeze_encoder: false,
         }
     }
 }
@@ -178,6 +191,55 @@ pub fn sample_batch(
     rng: &mut ChaCha8Rng,
     crop: bool,
 ) -> Result<(ObsBatch, Vec<f32>), PolicyError> {
+    let mode = if crop { Images::Crop } else { Images::Full };
+    let (obs, x0, _) = draw_batch(policy, data, win, b, rng, mode)?;
+    Ok((obs, x0))
+}
+
+/// How [`draw_batch`] treats images.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Images {
+    /// Random crops when the config crops randomly (training).
+    Crop,
+    /// Full frames.
+    Full,
+    /// No pixels (the caller has cached features for the returned frames).
+    Skip,
+}
+
+/// Copy the `(crop_h, crop_w)` window at (top, left) of HWC u8 frame `f` into `out` as CHW
+/// f32 in [0, 1].
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn push_crop(
+    px: &[u8],
+    f: usize,
+    [c, h, w]: [usize; 3],
+    top: usize,
+    left: usize,
+    crop_h: usize,
+    crop_w: usize,
+    out: &mut Vec<f32>,
+) {
+    let base = f * h * w * c;
+    for ch in 0..c {
+        for y in top..top + crop_h {
+            for x in left..left + crop_w {
+                out.push(f32::from(px[base + (y * w + x) * c + ch]) / 255.0);
+            }
+        }
+    }
+}
+
+/// [`sample_batch`], also returning the frame index of every observation step
+/// (`b x n_obs_steps`, window-major).
+fn draw_batch(
+    policy: &DiffusionPolicy,
+    data: &TrainData,
+    win: &Windows,
+    b: usize,
+    rng: &mut ChaCha8Rng,
+    mode: Images,
+) -> Result<(ObsBatch, Vec<f32>, Vec<usize>), PolicyError> {
     if win.is_empty() {
         return Err(config_err(
             "dataset",
@@ -190,13 +252,15 @@ pub fn sample_batch(
     let s_dim = config.vector_dim(FeatureType::State).unwrap_or(0);
     let e_dim = config.vector_dim(FeatureType::Env);
     let a_dim = config.action_dim()?;
-    let image = config.image_shape();
+    let image = config.image_shape().filter(|_| mode != Images::Skip);
     let t_o = config.n_obs_steps;
     let tp = config.horizon;
     let mut st = Vec::with_capacity(b * t_o * s_dim);
     let mut env = Vec::new();
     let mut act = Vec::with_capacity(b * tp * a_dim);
     let mut imgs: Vec<f32> = Vec::new();
+    let mut frames = Vec::with_capacity(b * t_o);
+    let crop = mode == Images::Crop;
     let (crop_h, crop_w) = match (image, config.crop_shape) {
         (Some(_), Some([h, w])) if crop => (h, w),
         (Some([_, h, w]), _) => (h, w),
@@ -207,11 +271,12 @@ pub fn sample_batch(
         let frame = |k: isize| start + (off + k).clamp(0, len as isize - 1) as usize;
         for k in 0..t_o as isize {
             let f = frame(k);
+            frames.push(f);
             st.extend_from_slice(&data.state[f * s_dim..(f + 1) * s_dim]);
             if let (Some(d), Some(e)) = (e_dim, &data.env_state) {
                 env.extend_from_slice(&e[f * d..(f + 1) * d]);
             }
-            if let (Some([c, h, w]), Some(px)) = (image, &data.images) {
+            if let (Some(shape @ [_, h, w]), Some(px)) = (image, &data.images) {
                 let (top, left) = if crop && config.crop_is_random {
                     (
                         rng.random_range(0..=h - crop_h),
@@ -220,14 +285,7 @@ pub fn sample_batch(
                 } else {
                     ((h - crop_h) / 2, (w - crop_w) / 2)
                 };
-                let base = f * h * w * c;
-                for ch in 0..c {
-                    for y in top..top + crop_h {
-                        for x in left..left + crop_w {
-                            imgs.push(f32::from(px[base + (y * w + x) * c + ch]) / 255.0);
-                        }
-                    }
-                }
+                push_crop(px, f, shape, top, left, crop_h, crop_w, &mut imgs);
             }
         }
         for k in 0..tp as isize {
@@ -250,7 +308,34 @@ pub fn sample_batch(
         },
         ..obs
     };
-    Ok((obs, x0))
+    Ok((obs, x0, frames))
+}
+
+/// The evaluation-time image features (centre crop) of every frame of `data`,
+/// `frames x feature_dim`, computed in batches of 256 frames.
+pub fn frame_features(policy: &DiffusionPolicy, data: &TrainData) -> Result<Vec<f32>, PolicyError> {
+    let [c, h, w] = policy
+        .config()
+        .image_shape()
+        .ok_or_else(|| config_err("input_features", "no observation.image", "an image policy"))?;
+    let px = data
+        .images
+        .as_ref()
+        .ok_or_else(|| config_err("dataset", "no images", "observation.image frames"))?;
+    let n = px.len() / (c * h * w);
+    let mut out = Vec::new();
+    let mut buf = Vec::new();
+    for lo in (0..n).step_by(256) {
+        let hi = (lo + 256).min(n);
+        buf.clear();
+        for f in lo..hi {
+            push_crop(px, f, [c, h, w], 0, 0, h, w, &mut buf);
+        }
+        let t = Tensor::from_slice(&buf, (hi - lo, c, h, w), policy.device())?;
+        let feats = policy.image_features(&t)?;
+        out.extend(feats.flatten_all()?.to_vec1::<f32>()?);
+    }
+    Ok(out)
 }
 
 /// Train from scratch, or resume from `out` if it holds a training state. Checkpoints go to
@@ -265,6 +350,13 @@ pub fn train(
 ) -> Result<TrainReport, PolicyError> {
     config.validate()?;
     train.validate()?;
+    if train.freeze_encoder && config.image_shape().is_none() {
+        return Err(config_err(
+            "freeze_encoder",
+            true,
+            "an image policy (a keypoint policy has no encoder)",
+        ));
+    }
     let t0 = std::time::Instant::now();
     let varmap = VarMap::new();
     let vb = crate::init::seeded_var_builder(&varmap, train.seed, DType::F32, device);
@@ -272,6 +364,9 @@ pub fn train(
     let mut step = 0usize;
     let state_path = out.join("training_state.json");
     let mut ema: Option<HashMap<String, Tensor>> = None;
+    if let (Some(init), false) = (&train.init, state_path.exists()) {
+        load_init(&varmap, init, device)?;
+    }
     if state_path.exists() {
         let text = std::fs::read_to_string(&state_path).map_err(|source| PolicyError::Io {
             path: state_path.clone(),
@@ -304,7 +399,8 @@ pub fn train(
             )?);
         }
     }
-    let vars: Vec<(String, Var)> = {
+    // Every variable (EMA, checkpoints) and the optimised ones (all but a frozen encoder).
+    let all_vars: Vec<(String, Var)> = {
         let data = varmap
             .data()
             .lock()
@@ -313,9 +409,21 @@ pub fn train(
         v.sort_by(|a, b| a.0.cmp(&b.0));
         v
     };
+    let vars: Vec<(String, Var)> = all_vars
+        .iter()
+        .filter(|(k, _)| !(train.freeze_encoder && k.starts_with(ENCODER_PREFIX)))
+        .cloned()
+        .collect();
+    // With a frozen encoder, every frame's features once (the encoder's weights are final).
+    let cached = if train.freeze_encoder {
+        Some(frame_features(&policy, data)?)
+    } else {
+        None
+    };
     if train.ema_max_decay.is_some() && ema.is_none() {
         ema = Some(
-            vars.iter()
+            all_vars
+                .iter()
                 .map(|(k, v)| Ok((k.clone(), v.as_tensor().detach().copy()?)))
                 .collect::<Result<HashMap<_, _>, PolicyError>>()?,
         );
@@ -344,7 +452,12 @@ pub fn train(
         let mut rng = ChaCha8Rng::seed_from_u64(
             train.seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
         );
-        let (obs, x0) = sample_batch(&policy, data, &win, b, &mut rng, true)?;
+        let mode = if cached.is_some() {
+            Images::Skip
+        } else {
+            Images::Crop
+        };
+        let (obs, x0, frames) = draw_batch(&policy, data, &win, b, &mut rng, mode)?;
         let eps: Vec<f32> = (0..b * tp * a_dim)
             .map(|_| StandardNormal.sample(&mut rng))
             .collect();
@@ -353,7 +466,18 @@ pub fn train(
             .collect();
         let x0 = Tensor::from_vec(x0, (b, tp, a_dim), device)?;
         let eps = Tensor::from_vec(eps, (b, tp, a_dim), device)?;
-        let cond = policy.global_cond_cropped(&obs)?;
+        let cond = match &cached {
+            Some(feats) => {
+                let d = 2 * config.spatial_softmax_num_keypoints;
+                let rows: Vec<f32> = frames
+                    .iter()
+                    .flat_map(|&f| feats[f * d..(f + 1) * d].iter().copied())
+                    .collect();
+                let rows = Tensor::from_vec(rows, (frames.len(), d), device)?;
+                policy.global_cond_from_features(&obs, Some(&rows))?
+            }
+            None => policy.global_cond_cropped(&obs)?,
+        };
         let loss = policy.loss(&cond, &x0, &eps, &ts, None)?;
         let mut grads = loss.backward()?;
         // Global gradient-norm clipping.
@@ -411,12 +535,12 @@ pub fn train(
         {
             let weights: HashMap<String, Tensor> = match &ema {
                 Some(e) => e.clone(),
-                None => vars
+                None => all_vars
                     .iter()
                     .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
                     .collect(),
             };
-            let raw: HashMap<String, Tensor> = vars
+            let raw: HashMap<String, Tensor> = all_vars
                 .iter()
                 .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
                 .collect();
@@ -458,6 +582,40 @@ pub fn train(
         final_loss,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// The key prefix of the image encoder's variables.
+pub const ENCODER_PREFIX: &str = "diffusion.rgb_encoder.";
+
+/// Set the variables of `varmap` named in the safetensors file `path` to its tensors; a key
+/// the model lacks or a shape that differs is an error naming it.
+pub fn load_init(varmap: &VarMap, path: &Path, device: &Device) -> Result<usize, PolicyError> {
+    let tensors = candle_core::safetensors::load(path, device)?;
+    let vars = varmap
+        .data()
+        .lock()
+        .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
+    let mut names: Vec<&String> = tensors.keys().collect();
+    names.sort();
+    for name in names {
+        let t = &tensors[name];
+        let var = vars.get(name).ok_or_else(|| PolicyError::Checkpoint {
+            path: path.to_path_buf(),
+            reason: format!("`{name}` is not a variable of this policy"),
+        })?;
+        if var.shape() != t.shape() {
+            return Err(PolicyError::Checkpoint {
+                path: path.to_path_buf(),
+                reason: format!(
+                    "`{name}` has shape {:?}, the policy expects {:?}",
+                    t.dims(),
+                    var.dims()
+                ),
+            });
+        }
+        var.set(&t.to_dtype(var.dtype())?)?;
+    }
+    Ok(tensors.len())
 }
 
 /// Statistics as the policy wants them, from per-feature (min, max, mean, std) vectors.

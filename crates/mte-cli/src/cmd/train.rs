@@ -8,17 +8,18 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use mte_data::Dataset;
 use mte_data::dataset::names;
 use mte_policy::config::{DiffusionConfig, ObsKind};
+use mte_policy::pretrain::{EncoderPretrainConfig, pretrain_encoder};
 use mte_policy::train::{TrainConfig, TrainData, stats_from, train};
 
-use crate::args::{Cli, Format, PolicyObsArg, PresetArg, TrainDiffusionArgs};
+use crate::args::{Cli, Format, PolicyObsArg, PresetArg, TrainDiffusionArgs, TrainEncoderArgs};
 
-/// `mte train diffusion`
-pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
-    let obs = match a.obs {
-        PolicyObsArg::Keypoints => ObsKind::Keypoints,
-        PolicyObsArg::Image => ObsKind::Image,
-    };
-    let mut config = match a.preset {
+/// The preset for `obs`, with the fields of the JSON file `overrides` replaced.
+fn preset_config(
+    preset: PresetArg,
+    obs: ObsKind,
+    overrides: Option<&std::path::Path>,
+) -> Result<DiffusionConfig> {
+    let mut config = match preset {
         PresetArg::Cpu => DiffusionConfig::cpu(obs),
         PresetArg::Paper => {
             let mut c = DiffusionConfig::paper();
@@ -28,7 +29,7 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
             c
         }
     };
-    if let Some(path) = &a.config {
+    if let Some(path) = overrides {
         let text =
             std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
         let patch: serde_json::Value =
@@ -36,18 +37,15 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         config = config.with_overrides(&patch)?;
     }
     config.validate().context("check the preset and --config")?;
-    let data = load_train_data(&a.data, &config)?;
-    let tc = TrainConfig {
-        steps: a.steps,
-        batch_size: a.batch_size,
-        seed: a.seed,
-        checkpoint_every: a.checkpoint_every,
-        ..TrainConfig::default()
-    };
+    Ok(config)
+}
+
+/// A training progress bar of `steps` steps (hidden without a terminal).
+fn train_bar(cli: &Cli, steps: usize) -> ProgressBar {
     let show =
         !cli.no_progress && !cli.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
     let bar = ProgressBar::with_draw_target(
-        Some(a.steps as u64),
+        Some(steps as u64),
         if show {
             ProgressDrawTarget::stderr()
         } else {
@@ -60,6 +58,27 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         )
         .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
+    bar
+}
+
+/// `mte train diffusion`
+pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
+    let obs = match a.obs {
+        PolicyObsArg::Keypoints => ObsKind::Keypoints,
+        PolicyObsArg::Image => ObsKind::Image,
+    };
+    let config = preset_config(a.preset, obs, a.config.as_deref())?;
+    let data = load_train_data(&a.data, &config)?;
+    let tc = TrainConfig {
+        steps: a.steps,
+        batch_size: a.batch_size,
+        seed: a.seed,
+        checkpoint_every: a.checkpoint_every,
+        init: a.init.clone(),
+        freeze_encoder: a.freeze_encoder,
+        ..TrainConfig::default()
+    };
+    let bar = train_bar(cli, a.steps);
     let report = train(
         &config,
         &tc,
@@ -94,9 +113,70 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
     Ok(())
 }
 
+/// `mte train encoder`
+pub fn encoder(cli: &Cli, a: &TrainEncoderArgs) -> Result<()> {
+    let config = preset_config(a.preset, ObsKind::Image, a.config.as_deref())?;
+    let data = load_data(&a.data, &config, true)?;
+    let pc = EncoderPretrainConfig {
+        steps: a.steps,
+        batch_size: a.batch_size,
+        lr: a.lr,
+        seed: a.seed,
+        ..EncoderPretrainConfig::default()
+    };
+    let bar = train_bar(cli, a.steps);
+    let (weights, report) =
+        pretrain_encoder(&config, &pc, &data, &Device::Cpu, &|step, loss, lr| {
+            bar.set_position(step as u64);
+            if step % 10 == 0 {
+                bar.set_message(format!("loss {loss:.4} lr {lr:.2e}"));
+            }
+        })?;
+    bar.finish_and_clear();
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let path = a.out.join("encoder.safetensors");
+    candle_core::safetensors::save(&weights, &path)
+        .with_context(|| format!("writing {}", path.display()))?;
+    let json = serde_json::json!({ "config": pc, "report": report });
+    let rp = a.out.join("pretrain.json");
+    std::fs::write(&rp, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", rp.display()))?;
+    let mut out = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(out, "{}", serde_json::to_string(&report)?)?,
+        Format::Text => {
+            if !cli.quiet {
+                let mm = |v: Option<f32>| v.map_or("-".to_string(), |v| format!("{v:.1}"));
+                writeln!(
+                    out,
+                    "pre-trained {} steps in {:.0} s: loss {:.4} -> {:.4}; held-out keypoint \
+                     error {} (predicting the mean: {}) -> {}",
+                    report.steps,
+                    report.seconds,
+                    report.first_loss,
+                    report.final_loss,
+                    mm(report.heldout_mae),
+                    mm(report.heldout_mae_of_mean),
+                    path.display()
+                )?;
+            }
+        }
+    }
+    Ok(())
+}
+
 /// The arrays a policy of `config` trains (or is attacked / fine-tuned) on, from an
 /// `mte data generate` dataset.
 pub fn load_train_data(dir: &std::path::Path, config: &DiffusionConfig) -> Result<TrainData> {
+    load_data(dir, config, false)
+}
+
+/// [`load_train_data`], also with the keypoints of an image dataset when `keypoints`.
+fn load_data(
+    dir: &std::path::Path,
+    config: &DiffusionConfig,
+    keypoints: bool,
+) -> Result<TrainData> {
     let ds = Dataset::load(dir).with_context(|| format!("loading dataset {}", dir.display()))?;
     let need = |name: &str| -> Result<Vec<f32>> {
         Ok(ds
@@ -104,7 +184,7 @@ pub fn load_train_data(dir: &std::path::Path, config: &DiffusionConfig) -> Resul
             .with_context(|| format!("the policy needs `{name}`: regenerate with --obs"))?
             .to_vec())
     };
-    let env_state = if config.image_shape().is_none() {
+    let env_state = if config.image_shape().is_none() || keypoints {
         Some(need(names::ENV_STATE)?)
     } else {
         None

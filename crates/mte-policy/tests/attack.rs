@@ -5,28 +5,25 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
 use mte_policy::config::{DiffusionConfig, ObsKind};
 use mte_policy::init::seeded_var_builder;
-use mte_policy::{DiffusionPolicy, Observation, PgdConfig, Stats, StatsMap};
+use mte_policy::{DiffusionPolicy, Observation, PgdConfig, StatsMap};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+
+mod common;
 
 type R = Result<(), Box<dyn std::error::Error>>;
 
 fn stats(image: bool) -> StatsMap {
-    let mm = |lo: f32, hi: f32, n: usize| Stats {
-        min: vec![lo; n],
-        max: vec![hi; n],
-        mean: vec![0.5; n],
-        std: vec![0.25; n],
-    };
-    let mut s = StatsMap::new();
-    s.insert("observation.state".into(), mm(0.0, 512.0, 2));
-    s.insert("action".into(), mm(0.0, 512.0, 2));
-    if image {
-        s.insert("observation.image".into(), mm(0.0, 1.0, 3));
+    let extra = if image {
+        ("observation.image", 0.0, 1.0, 3)
     } else {
-        s.insert("observation.environment_state".into(), mm(0.0, 512.0, 16));
-    }
-    s
+        ("observation.environment_state", 0.0, 512.0, 16)
+    };
+    common::stats(&[
+        ("observation.state", 0.0, 512.0, 2),
+        ("action", 0.0, 512.0, 2),
+        extra,
+    ])
 }
 
 fn policy(

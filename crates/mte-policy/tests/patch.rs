@@ -8,22 +8,18 @@ use mte_policy::patch::{
     Ascent, FinetuneConfig, PatchConfig, finetune_encoder, gradient_probe, paste, train_patch,
 };
 use mte_policy::train::{TrainData, Windows, sample_batch};
-use mte_policy::{DiffusionPolicy, ObsBatch, Stats, StatsMap};
+use mte_policy::{DiffusionPolicy, ObsBatch, StatsMap};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+mod common;
+
 fn stats() -> StatsMap {
-    let mm = |lo: f32, hi: f32, n: usize| Stats {
-        min: vec![lo; n],
-        max: vec![hi; n],
-        mean: vec![0.5; n],
-        std: vec![0.25; n],
-    };
-    let mut s = StatsMap::new();
-    s.insert("observation.state".into(), mm(0.0, 512.0, 2));
-    s.insert("observation.image".into(), mm(0.0, 1.0, 3));
-    s.insert("action".into(), mm(0.0, 512.0, 2));
-    s
+    common::stats(&[
+        ("observation.state", 0.0, 512.0, 2),
+        ("observation.image", 0.0, 1.0, 3),
+        ("action", 0.0, 512.0, 2),
+    ])
 }
 
 fn config() -> DiffusionConfig {
@@ -265,14 +261,12 @@ fn keypoint_policies_cannot_carry_a_patch() {
         .with_overrides(&serde_json::json!({"down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8}))
         .expect("valid");
     let mut s = stats();
-    s.insert(
-        "observation.environment_state".into(),
-        Stats {
-            min: vec![0.0; 16],
-            max: vec![512.0; 16],
-            ..Default::default()
-        },
-    );
+    s.extend(common::stats(&[(
+        "observation.environment_state",
+        0.0,
+        512.0,
+        16,
+    )]));
     let vm = VarMap::new();
     let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
     let p = DiffusionPolicy::new(c, s, vb).expect("policy");

@@ -7,11 +7,11 @@ use std::collections::HashMap;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
+use mte_policy::StatsMap;
 use mte_policy::config::{DiffusionConfig, ObsKind};
 use mte_policy::error::PolicyError;
 use mte_policy::pretrain::{EncoderPretrainConfig, pretrain_encoder};
 use mte_policy::train::{ENCODER_PREFIX, TrainConfig, TrainData, load_init, train};
-use mte_policy::{Stats, StatsMap};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -25,19 +25,16 @@ fn config() -> DiffusionConfig {
         .expect("valid")
 }
 
+mod common;
+use common::max_abs_diff;
+
 fn stats() -> StatsMap {
-    let mm = |lo: f32, hi: f32, n: usize| Stats {
-        min: vec![lo; n],
-        max: vec![hi; n],
-        mean: vec![0.5; n],
-        std: vec![0.25; n],
-    };
-    let mut s = StatsMap::new();
-    s.insert("observation.state".into(), mm(0.0, 512.0, 2));
-    s.insert("observation.environment_state".into(), mm(0.0, 96.0, 2));
-    s.insert("observation.image".into(), mm(0.0, 1.0, 3));
-    s.insert("action".into(), mm(0.0, 512.0, 2));
-    s
+    common::stats(&[
+        ("observation.state", 0.0, 512.0, 2),
+        ("observation.environment_state", 0.0, 96.0, 2),
+        ("observation.image", 0.0, 1.0, 3),
+        ("action", 0.0, 512.0, 2),
+    ])
 }
 
 /// Four 30-frame episodes of a bright 14 px square at random positions on a dim textured
@@ -119,11 +116,7 @@ fn pretraining_is_deterministic() {
     let run = || pretrain_encoder(&config(), &pc, &d, &Device::Cpu, &no_progress).expect("run");
     let ((weights, _), (again, _)) = (run(), run());
     for (k, t) in &weights {
-        let diff = (t - &again[k])
-            .and_then(|x| x.abs())
-            .and_then(|x| x.max_all())
-            .and_then(|x| x.to_scalar::<f32>())
-            .expect("diff");
+        let diff = max_abs_diff(t, &again[k]);
         assert_eq!(diff, 0.0, "{k}");
     }
 }
@@ -160,11 +153,7 @@ fn a_frozen_initialised_encoder_stays_exact_while_the_unet_trains() {
     for file in ["model.safetensors", "raw_model.safetensors"] {
         let saved = candle_core::safetensors::load(out.join(file), &Device::Cpu).expect("load");
         for (k, t) in &init {
-            let diff = (t - &saved[k])
-                .and_then(|x| x.abs())
-                .and_then(|x| x.max_all())
-                .and_then(|x| x.to_scalar::<f32>())
-                .expect("diff");
+            let diff = max_abs_diff(t, &saved[k]);
             assert_eq!(diff, 0.0, "{file}: {k} moved");
         }
         // The U-Net did train: its raw weights differ from the seeded initialisation.
@@ -178,14 +167,7 @@ fn a_frozen_initialised_encoder_stays_exact_while_the_unet_trains() {
                 .expect("lock")
                 .iter()
                 .filter(|(k, _)| k.starts_with("diffusion.unet."))
-                .any(|(k, v)| {
-                    (v.as_tensor() - &saved[k])
-                        .and_then(|x| x.abs())
-                        .and_then(|x| x.max_all())
-                        .and_then(|x| x.to_scalar::<f32>())
-                        .expect("diff")
-                        > 0.0
-                });
+                .any(|(k, v)| max_abs_diff(v.as_tensor(), &saved[k]) > 0.0);
             assert!(moved, "no U-Net weight changed");
         }
     }

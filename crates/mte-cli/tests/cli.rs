@@ -291,6 +291,27 @@ fn bundled() -> std::path::PathBuf {
         .join("../../assets/policies/pusht_keypoints_cpu")
 }
 
+/// The bundled image policy loads from a fresh clone and drives PushT from pixels: a short
+/// episode runs, and its coverage is a valid fraction.
+#[test]
+fn bundled_image_policy_runs_an_episode() {
+    let ckpt = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../assets/policies/pusht_image_cpu");
+    let out = mte()
+        .args(["--format", "json", "eval", "policy", "--episodes", "1"])
+        .args(["--max-steps", "40", "--checkpoint"])
+        .arg(&ckpt)
+        .assert()
+        .success()
+        .get_output()
+        .stdout
+        .clone();
+    let v: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    let c = v["mean_max_coverage"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&c), "{v}");
+    assert_eq!(v["episodes"].as_array().map(Vec::len), Some(1), "{v}");
+}
+
 #[test]
 fn demo_runs_pairs_resumes_and_reports() {
     let dir = tempfile::tempdir().unwrap();

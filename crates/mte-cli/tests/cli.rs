@@ -6,6 +6,12 @@ use std::fs;
 use assert_cmd::Command;
 use predicates::prelude::*;
 
+/// Run `cmd`, require success, and parse its stdout as one JSON document.
+fn json_stdout(cmd: &mut Command) -> serde_json::Value {
+    let out = cmd.assert().success().get_output().stdout.clone();
+    serde_json::from_slice(&out).unwrap()
+}
+
 fn mte() -> Command {
     let mut c = Command::cargo_bin("mte").unwrap();
     c.arg("--no-progress");
@@ -14,23 +20,19 @@ fn mte() -> Command {
 
 #[test]
 fn synthetic_json_shows_the_median_beating_the_mean_under_bursts() {
-    let out = mte()
-        .args([
-            "synthetic",
-            "--episodes",
-            "4",
-            "--steps",
-            "80",
-            "--format",
-            "json",
-        ])
-        .args(["--aggregators", "ewm:0.01,median"])
-        .assert()
-        .success()
-        .get_output()
-        .stdout
-        .clone();
-    let v: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    let v = json_stdout(
+        mte()
+            .args([
+                "synthetic",
+                "--episodes",
+                "4",
+                "--steps",
+                "80",
+                "--format",
+                "json",
+            ])
+            .args(["--aggregators", "ewm:0.01,median"]),
+    );
     let cells = v["cells"].as_array().unwrap();
     assert_eq!(cells.len(), 4 * 2);
     let rmse = |q: u64, agg: &str| {
@@ -176,17 +178,13 @@ fn replay_reads_standard_input() {
 fn sim_render_writes_a_png_of_the_reset_state() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("frame.png");
-    let stdout = mte()
-        .args([
-            "sim", "render", "--seed", "100000", "--format", "json", "--out",
-        ])
-        .arg(&out)
-        .assert()
-        .success()
-        .get_output()
-        .stdout
-        .clone();
-    let v: serde_json::Value = serde_json::from_slice(&stdout).unwrap();
+    let v = json_stdout(
+        mte()
+            .args([
+                "sim", "render", "--seed", "100000", "--format", "json", "--out",
+            ])
+            .arg(&out),
+    );
     // The Diffusion Policy test seed 100000 (legacy stream) starts with the agent at (235, 124).
     assert_eq!(v["state"][0], 235.0);
     assert_eq!(v["state"][1], 124.0);
@@ -201,18 +199,14 @@ fn sim_render_writes_a_png_of_the_reset_state() {
 fn sim_rollout_writes_an_animated_gif_and_reports_success() {
     let dir = tempfile::tempdir().unwrap();
     let gif = dir.path().join("out.gif");
-    let stdout = mte()
-        .args([
-            "sim", "rollout", "--policy", "expert", "--seed", "100007", "--format", "json",
-        ])
-        .args(["--gif-size", "64", "--gif"])
-        .arg(&gif)
-        .assert()
-        .success()
-        .get_output()
-        .stdout
-        .clone();
-    let v: serde_json::Value = serde_json::from_slice(&stdout).unwrap();
+    let v = json_stdout(
+        mte()
+            .args([
+                "sim", "rollout", "--policy", "expert", "--seed", "100007", "--format", "json",
+            ])
+            .args(["--gif-size", "64", "--gif"])
+            .arg(&gif),
+    );
     let ep = &v["episodes"][0];
     let steps = ep["steps"].as_u64().unwrap();
     assert!(ep["max_coverage"].as_f64().unwrap() > 0.5);
@@ -297,16 +291,12 @@ fn bundled() -> std::path::PathBuf {
 fn bundled_image_policy_runs_an_episode() {
     let ckpt = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../../assets/policies/pusht_image_cpu");
-    let out = mte()
-        .args(["--format", "json", "eval", "policy", "--episodes", "1"])
-        .args(["--max-steps", "40", "--checkpoint"])
-        .arg(&ckpt)
-        .assert()
-        .success()
-        .get_output()
-        .stdout
-        .clone();
-    let v: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    let v = json_stdout(
+        mte()
+            .args(["--format", "json", "eval", "policy", "--episodes", "1"])
+            .args(["--max-steps", "40", "--checkpoint"])
+            .arg(&ckpt),
+    );
     let c = v["mean_max_coverage"].as_f64().unwrap();
     assert!((0.0..=1.0).contains(&c), "{v}");
     assert_eq!(v["episodes"].as_array().map(Vec::len), Some(1), "{v}");

@@ -398,19 +398,11 @@ pub fn finetune_encoder(
             format!("3 x side x side values with side <= {}", h.min(w)),
         ));
     }
-    let vars: Vec<Var> = {
-        let data = varmap
-            .data()
-            .lock()
-            .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
-        let mut v: Vec<(String, Var)> = data
-            .iter()
-            .filter(|(k, _)| k.starts_with("diffusion.rgb_encoder."))
-            .map(|(k, v)| (k.clone(), v.clone()))
+    let vars: Vec<Var> =
+        crate::train::sorted_vars(varmap, |k| k.starts_with(crate::train::ENCODER_PREFIX))?
+            .into_iter()
+            .map(|(_, v)| v)
             .collect();
-        v.sort_by(|a, b| a.0.cmp(&b.0));
-        v.into_iter().map(|(_, v)| v).collect()
-    };
     if vars.is_empty() {
         return Err(config_err(
             "varmap",

@@ -12,7 +12,7 @@
 
 use std::collections::HashMap;
 
-use candle_core::{DType, Device, Tensor, Var};
+use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Module, Optimizer, ParamsAdamW, VarMap};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -21,7 +21,10 @@ use crate::config::DiffusionConfig;
 use crate::error::{PolicyError, config_err};
 use crate::model::DiffusionPolicy;
 use crate::normalize::{NormMode, Normalizer};
-use crate::train::{ENCODER_PREFIX, Progress, TrainData, learning_rate};
+use crate::train::{
+    ENCODER_PREFIX, Progress, TrainData, crop_origin, frame_features, learning_rate, push_crop,
+    sorted_vars,
+};
 
 /// The name of the regression target in a dataset.
 pub const TARGET: &str = "observation.environment_state";
@@ -159,19 +162,9 @@ pub fn pretrain_encoder(
         k,
         vb.pp("pretrain_head"),
     )?;
-    let vars: Vec<(String, Var)> = {
-        let m = varmap
-            .data()
-            .lock()
-            .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
-        let mut v: Vec<(String, Var)> = m
-            .iter()
-            .filter(|(n, _)| n.starts_with(ENCODER_PREFIX) || n.starts_with("pretrain_head"))
-            .map(|(n, v)| (n.clone(), v.clone()))
-            .collect();
-        v.sort_by(|a, b| a.0.cmp(&b.0));
-        v
-    };
+    let vars = sorted_vars(&varmap, |n| {
+        n.starts_with(ENCODER_PREFIX) || n.starts_with("pretrain_head")
+    })?;
     let mut opt = AdamW::new(
         vars.iter().map(|(_, v)| v.clone()).collect(),
         ParamsAdamW {
@@ -192,15 +185,9 @@ pub fn pretrain_encoder(
         ys.clear();
         for _ in 0..b {
             let f = rng.random_range(0..train_frames);
-            let (top, left) = if config.crop_is_random {
-                (
-                    rng.random_range(0..=h - crop_h),
-                    rng.random_range(0..=w - crop_w),
-                )
-            } else {
-                ((h - crop_h) / 2, (w - crop_w) / 2)
-            };
-            crate::train::push_crop(px, f, [c, h, w], top, left, crop_h, crop_w, &mut imgs);
+            let (top, left) =
+                crop_origin([h, w], [crop_h, crop_w], config.crop_is_random, &mut rng);
+            push_crop(px, f, [c, h, w], top, left, crop_h, crop_w, &mut imgs);
             ys.extend_from_slice(&y[f * k..(f + 1) * k]);
         }
         let x = Tensor::from_slice(&imgs, (b, c, crop_h, crop_w), device)?;
@@ -234,28 +221,20 @@ pub fn pretrain_encoder(
                 *m += f64::from(target[f * k + j]) / train_frames as f64;
             }
         }
-        let (mut err, mut err_mean, mut n) = (0f64, 0f64, 0usize);
-        for lo in (train_frames..frames).step_by(256) {
-            let hi = (lo + 256).min(frames);
-            imgs.clear();
-            for f in lo..hi {
-                crate::train::push_crop(px, f, [c, h, w], 0, 0, h, w, &mut imgs);
-            }
-            let x = Tensor::from_slice(&imgs, (hi - lo, c, h, w), device)?;
-            let mut pred = head
-                .forward(&policy.image_features(&x)?)?
-                .flatten_all()?
-                .to_vec1::<f32>()?;
-            norm.unnormalize(&mut pred);
-            for (i, p) in pred.iter().enumerate() {
-                let truth = f64::from(target[lo * k + i]);
-                err += (f64::from(*p) - truth).abs();
-                err_mean += (mean_y[i % k] - truth).abs();
-                n += 1;
-            }
+        let feats = frame_features(&policy, data, train_frames..frames)?;
+        let d = 2 * config.spatial_softmax_num_keypoints;
+        let feats = Tensor::from_vec(feats, (frames - train_frames, d), device)?;
+        let mut pred = head.forward(&feats)?.flatten_all()?.to_vec1::<f32>()?;
+        norm.unnormalize(&mut pred);
+        let (mut err, mut err_mean) = (0f64, 0f64);
+        for (i, p) in pred.iter().enumerate() {
+            let truth = f64::from(target[train_frames * k + i]);
+            err += (f64::from(*p) - truth).abs();
+            err_mean += (mean_y[i % k] - truth).abs();
         }
-        heldout_mae = Some((err / n as f64) as f32);
-        heldout_mae_of_mean = Some((err_mean / n as f64) as f32);
+        let n = pred.len() as f64;
+        heldout_mae = Some((err / n) as f32);
+        heldout_mae_of_mean = Some((err_mean / n) as f32);
     }
     let weights = vars
         .iter()

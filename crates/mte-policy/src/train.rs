@@ -207,6 +207,24 @@ enum Images {
     Skip,
 }
 
+/// The (top, left) corner of a `crop` window in an `[h, w]` frame: uniform from `rng` when
+/// `random`, else centred (nothing drawn).
+pub(crate) fn crop_origin(
+    [h, w]: [usize; 2],
+    [crop_h, crop_w]: [usize; 2],
+    random: bool,
+    rng: &mut ChaCha8Rng,
+) -> (usize, usize) {
+    if random {
+        (
+            rng.random_range(0..=h - crop_h),
+            rng.random_range(0..=w - crop_w),
+        )
+    } else {
+        ((h - crop_h) / 2, (w - crop_w) / 2)
+    }
+}
+
 /// Copy the `(crop_h, crop_w)` window at (top, left) of HWC u8 frame `f` into `out` as CHW
 /// f32 in [0, 1].
 #[allow(clippy::too_many_arguments)]
@@ -277,14 +295,8 @@ fn draw_batch(
                 env.extend_from_slice(&e[f * d..(f + 1) * d]);
             }
             if let (Some(shape @ [_, h, w]), Some(px)) = (image, &data.images) {
-                let (top, left) = if crop && config.crop_is_random {
-                    (
-                        rng.random_range(0..=h - crop_h),
-                        rng.random_range(0..=w - crop_w),
-                    )
-                } else {
-                    ((h - crop_h) / 2, (w - crop_w) / 2)
-                };
+                let (top, left) =
+                    crop_origin([h, w], [crop_h, crop_w], crop && config.crop_is_random, rng);
                 push_crop(px, f, shape, top, left, crop_h, crop_w, &mut imgs);
             }
         }
@@ -311,9 +323,13 @@ fn draw_batch(
     Ok((obs, x0, frames))
 }
 
-/// The evaluation-time image features (centre crop) of every frame of `data`,
-/// `frames x feature_dim`, computed in batches of 256 frames.
-pub fn frame_features(policy: &DiffusionPolicy, data: &TrainData) -> Result<Vec<f32>, PolicyError> {
+/// The evaluation-time image features (centre crop) of the frames `range` of `data`
+/// (`range.len() x feature_dim`, row-major), computed in batches of 256 frames.
+pub fn frame_features(
+    policy: &DiffusionPolicy,
+    data: &TrainData,
+    range: std::ops::Range<usize>,
+) -> Result<Vec<f32>, PolicyError> {
     let [c, h, w] = policy
         .config()
         .image_shape()
@@ -323,10 +339,17 @@ pub fn frame_features(policy: &DiffusionPolicy, data: &TrainData) -> Result<Vec<
         .as_ref()
         .ok_or_else(|| config_err("dataset", "no images", "observation.image frames"))?;
     let n = px.len() / (c * h * w);
+    if range.end > n {
+        return Err(config_err(
+            "frames",
+            range,
+            format!("within the {n} frames"),
+        ));
+    }
     let mut out = Vec::new();
     let mut buf = Vec::new();
-    for lo in (0..n).step_by(256) {
-        let hi = (lo + 256).min(n);
+    for lo in range.clone().step_by(256) {
+        let hi = (lo + 256).min(range.end);
         buf.clear();
         for f in lo..hi {
             push_crop(px, f, [c, h, w], 0, 0, h, w, &mut buf);
@@ -400,15 +423,7 @@ pub fn train(
         }
     }
     // Every variable (EMA, checkpoints) and the optimised ones (all but a frozen encoder).
-    let all_vars: Vec<(String, Var)> = {
-        let data = varmap
-            .data()
-            .lock()
-            .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
-        let mut v: Vec<(String, Var)> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
-        v.sort_by(|a, b| a.0.cmp(&b.0));
-        v
-    };
+    let all_vars = sorted_vars(&varmap, |_| true)?;
     let vars: Vec<(String, Var)> = all_vars
         .iter()
         .filter(|(k, _)| !(train.freeze_encoder && k.starts_with(ENCODER_PREFIX)))
@@ -416,7 +431,8 @@ pub fn train(
         .collect();
     // With a frozen encoder, every frame's features once (the encoder's weights are final).
     let cached = if train.freeze_encoder {
-        Some(frame_features(&policy, data)?)
+        let frames = data.episode_lengths.iter().sum();
+        Some(frame_features(&policy, data, 0..frames)?)
     } else {
         None
     };
@@ -586,6 +602,25 @@ pub fn train(
 
 /// The key prefix of the image encoder's variables.
 pub const ENCODER_PREFIX: &str = "diffusion.rgb_encoder.";
+
+/// The variables of `varmap` whose names pass `keep`, sorted by name (a stable order for the
+/// optimiser and for checkpoints).
+pub(crate) fn sorted_vars(
+    varmap: &VarMap,
+    keep: impl Fn(&str) -> bool,
+) -> Result<Vec<(String, Var)>, PolicyError> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
+    let mut v: Vec<(String, Var)> = data
+        .iter()
+        .filter(|(k, _)| keep(k))
+        .map(|(k, v)| (k.clone(), v.clone()))
+        .collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    Ok(v)
+}
 
 /// Set the variables of `varmap` named in the safetensors file `path` to its tensors; a key
 /// the model lacks or a shape that differs is an error naming it.

@@ -489,6 +489,22 @@ pub struct ReportArgs {
     /// Cell of the aggregator table (default: the corrupted cell with most arms).
     #[arg(long)]
     pub cell: Option<String>,
+    /// Add the defence table: `UNDEFENDED:DEFENDED` policies (paths as in the specs or their
+    /// last component), cells paired by corruption and h.
+    #[arg(long, value_name = "UNDEFENDED:DEFENDED", value_parser = parse_defence)]
+    pub defence: Option<mte_eval::report::DefencePair>,
+}
+
+fn parse_defence(s: &str) -> Result<mte_eval::report::DefencePair, String> {
+    match s.rsplit_once(':') {
+        Some((u, d)) if !u.is_empty() && !d.is_empty() => Ok(mte_eval::report::DefencePair {
+            undefended: u.to_string(),
+            defended: d.to_string(),
+        }),
+        _ => Err(format!(
+            "`{s}`: expected UNDEFENDED:DEFENDED, two policy names separated by a colon"
+        )),
+    }
 }
 
 /// `mte attack ...`
@@ -558,6 +574,15 @@ pub enum DefendCommand {
     Probe(ProbeArgs),
 }
 
+/// Consistency anchor of `mte defend finetune`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum AnchorArg {
+    /// The encoder before fine-tuning (frozen copy).
+    Original,
+    /// The encoder being fine-tuned (detached).
+    Current,
+}
+
 /// `mte defend finetune`
 #[derive(Debug, Args)]
 pub struct FinetuneArgs {
@@ -579,6 +604,9 @@ pub struct FinetuneArgs {
     /// Consistency weight.
     #[arg(long, default_value_t = 1.0)]
     pub consistency: f64,
+    /// Clean embedding the consistency term ties the patched one to.
+    #[arg(long, value_enum, default_value_t = AnchorArg::Original)]
+    pub anchor: AnchorArg,
     /// Windows per batch.
     #[arg(long, default_value_t = 16)]
     pub batch_size: usize,

@@ -39,8 +39,10 @@ use serde::Serialize;
 
 use crate::record::{CellSpec, EpisodeRecord, ErrorRecord, Line, Manifest, StageTimes};
 
+mod defence;
 mod plot;
 
+pub use defence::{DefencePair, DefenceRow, DefenceTable};
 pub use plot::Plot;
 use plot::{PlotSpec, Point, Series};
 
@@ -60,6 +62,8 @@ pub struct ReportOptions {
     /// Cell of the aggregator table; default: the corrupted cell with the most arms (the
     /// first on ties).
     pub focus_cell: Option<String>,
+    /// Compare a defended policy with an undefended one (section 9); none by default.
+    pub defence: Option<DefencePair>,
 }
 
 /// Why a report could not be built or written.
@@ -92,6 +96,16 @@ pub enum ReportError {
     SameArm {
         /// The arm.
         arm: String,
+    },
+    /// A policy given for the defence table is not a policy of any cell.
+    #[error("{role} policy `{policy}` is not a policy of the run (policies: {available})")]
+    UnknownPolicy {
+        /// `undefended` or `defended`.
+        role: &'static str,
+        /// The policy given.
+        policy: String,
+        /// The policies' labels, comma separated.
+        available: String,
     },
     /// The focus cell given in the options is not in the manifest.
     #[error("focus cell `{cell}` is not a cell of the manifest")]
@@ -434,6 +448,8 @@ pub struct Report {
     pub overhead: Vec<Overhead>,
     /// Error records, in file order.
     pub failures: Vec<ErrorRecord>,
+    /// The defence table, when [`ReportOptions::defence`] asks for it.
+    pub defence: Option<DefenceTable>,
     /// Remarks on the data (duplicates, unpaired seeds, missing arms).
     pub notes: Vec<String>,
     /// Plots.
@@ -827,6 +843,12 @@ pub fn build(
         }
     }
 
+    // 9. Defence table.
+    let defence = match &opts.defence {
+        Some(pair) => Some(defence::build(&cells, pair, &all_arms, &mut notes)?),
+        None => None,
+    };
+
     // 8. Plots.
     let plots = plots(&cells, &corrupted, &baseline, &main)?
         .into_iter()
@@ -853,6 +875,7 @@ pub fn build(
         distributions,
         overhead,
         failures,
+        defence,
         notes,
         plots,
     })
@@ -1723,6 +1746,11 @@ impl Report {
         } else {
             b.push(Block::Plots);
         }
+
+        // 9.
+        if let Some(t) = &self.defence {
+            b.extend(t.blocks());
+        }
         b
     }
 
@@ -2378,11 +2406,121 @@ mod tests {
             baseline_arm: Some(MEDIAN.into()),
             robust_arm: Some(EWM.into()),
             focus_cell: Some(Q2.into()),
+            defence: None,
         };
         let r = build(&manifest(), &lines(), &opts).unwrap();
         let c = row(&r, Q1).comparison.as_ref().unwrap();
         assert!(c.delta.unwrap().mean < 0.0);
         assert_eq!(r.focus.cell, Q2);
+    }
+
+    /// The fixture run plus a defended policy `tuned`: clean and q = 1 cells only (no q = 2),
+    /// ewm 0.03 lower on clean and `lift` higher under q = 1 on every seed; median unchanged.
+    fn defended_run(lift: f64) -> (Manifest, Vec<Line>) {
+        let mut m = manifest();
+        let tuned = |id: &str, c: CorruptionSpec| CellSpec {
+            policy: "runs/ft/tuned".into(),
+            ..cell(id, c)
+        };
+        m.cells.push(tuned("tuned-clean-h2", CorruptionSpec::CLEAN));
+        m.cells.push(tuned("tuned-blank-burst-q1-h2", blank(1)));
+        let mut l = lines();
+        for (i, &seed) in SEEDS.iter().enumerate() {
+            l.push(episode("tuned-clean-h2", EWM, seed, CLEAN_EWM[i] - 0.03));
+            l.push(episode("tuned-clean-h2", MEDIAN, seed, CLEAN_MEDIAN[i]));
+            l.push(episode(
+                "tuned-blank-burst-q1-h2",
+                EWM,
+                seed,
+                Q1_EWM[i] + lift,
+            ));
+            l.push(episode(
+                "tuned-blank-burst-q1-h2",
+                MEDIAN,
+                seed,
+                Q1_MEDIAN[i],
+            ));
+        }
+        (m, l)
+    }
+
+    #[test]
+    fn defence_table_pairs_cells_by_corruption_and_gives_the_recovered_fraction() {
+        let (m, l) = defended_run(0.1);
+        let opts = ReportOptions {
+            defence: Some(DefencePair {
+                undefended: "pusht_keypoints".into(),
+                defended: "runs/ft/tuned".into(),
+            }),
+            ..Default::default()
+        };
+        let r = build(&m, &l, &opts).unwrap_or_else(|e| panic!("{e}"));
+        let t = r.defence.as_ref().expect("defence table");
+        assert_eq!(t.rows.len(), 2, "one pair of cells x two arms");
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let ewm = &t.rows[0];
+        assert_eq!((ewm.arm.as_str(), ewm.h), (EWM, 2));
+        assert_eq!(ewm.undefended_cell, Q1);
+        assert_eq!(ewm.defended_cell, "tuned-blank-burst-q1-h2");
+        assert_eq!(ewm.comparison.n, 8);
+        let d = ewm.comparison.delta.expect("delta");
+        assert!((d.mean - 0.1).abs() < 1e-12, "{d:?}");
+        let clean = mean(&CLEAN_EWM);
+        let want = 0.1 / (clean - mean(&Q1_EWM));
+        let got = ewm.recovered.expect("defined");
+        assert!((got - want).abs() < 1e-12, "{got} vs {want}");
+        assert!((ewm.clean.expect("clean").mean - clean).abs() < 1e-12);
+        let def_clean = ewm.defended_clean.expect("defended clean").mean;
+        assert!((def_clean - (clean - 0.03)).abs() < 1e-12);
+        let offsets: Vec<f64> = Q1_EWM.iter().map(|x| x + 0.1).collect();
+        let w = mte_stats::wilcoxon_signed_rank(&offsets, &Q1_EWM).expect("wilcoxon");
+        assert_eq!(ewm.comparison.wilcoxon_p, Some(w.p_value));
+        // No success under q = 1 either way: the z-test has nothing to separate.
+        assert_eq!(
+            (ewm.undefended_success, ewm.defended_success),
+            ((0, 8), (0, 8))
+        );
+        assert_eq!(ewm.ztest_p, Some(1.0));
+        // The median is unchanged by the defence: every difference is zero.
+        let med = &t.rows[1];
+        assert_eq!(med.arm, MEDIAN);
+        assert_eq!(med.comparison.wilcoxon_p, None);
+        assert_eq!(med.recovered, Some(0.0));
+        assert_eq!(
+            ewm.holm_wilcoxon,
+            Some(w.p_value),
+            "one defined p: Holm is the identity"
+        );
+        let md = r.markdown();
+        assert!(
+            md.contains("## 9. Defence: `runs/ft/tuned` against `pusht_keypoints`"),
+            "{md}"
+        );
+        // Without the option the report has no section 9.
+        let plain = build(&m, &l, &ReportOptions::default()).expect("report");
+        assert!(plain.defence.is_none() && !plain.markdown().contains("## 9."));
+    }
+
+    #[test]
+    fn defence_table_names_an_unknown_policy() {
+        let (m, l) = defended_run(0.1);
+        let e = build(
+            &m,
+            &l,
+            &ReportOptions {
+                defence: Some(DefencePair {
+                    undefended: "pusht_keypoints".into(),
+                    defended: "nope".into(),
+                }),
+                ..Default::default()
+            },
+        )
+        .unwrap_err();
+        assert!(
+            matches!(&e, ReportError::UnknownPolicy { role: "defended", policy, .. } if policy == "nope"),
+            "{e}"
+        );
+        assert!(e.to_string().contains("pusht_keypoints, tuned"), "{e}");
     }
 
     #[test]

@@ -298,8 +298,36 @@ pub fn train_patch(
     })
 }
 
+/// Which clean embedding the consistency term pulls the patched embedding towards.
+///
+/// The protocol says only "tying the perturbed embedding to the clean one". mte's default is
+/// the encoder *before* fine-tuning: the denoising head is frozen and was trained on those
+/// features, so the target never moves and the encoder cannot lower the term by flattening
+/// its features. `Current` (the fine-tuned encoder's own clean embedding, detached) is the
+/// other reading; on the shipped image policy it lost more than half the clean coverage at
+/// h = 2 in 1,000 steps (BENCHMARKS.md).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Anchor {
+    /// `f_θ0(x)`: a frozen copy of the encoder as it was when fine-tuning started.
+    #[default]
+    Original,
+    /// `stop_grad(f_θ(x))`: the encoder being fine-tuned.
+    Current,
+}
+
+impl std::fmt::Display for Anchor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Anchor::Original => "original",
+            Anchor::Current => "current",
+        })
+    }
+}
+
 /// Encoder fine-tuning settings. Defaults: the protocol's 3000 steps at lr 1e-5; consistency
-/// weight 1; batches of 16 windows; the patch fixed (no regeneration).
+/// weight 1 towards the original encoder's clean embedding; batches of 16 windows; the patch
+/// fixed (no regeneration).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct FinetuneConfig {
@@ -309,6 +337,8 @@ pub struct FinetuneConfig {
     pub lr: f64,
     /// Weight λ of the consistency term.
     pub consistency: f64,
+    /// The clean embedding the consistency term ties the patched one to.
+    pub anchor: Anchor,
     /// Windows per batch.
     pub batch_size: usize,
     /// Regenerate the patch against the current encoder every step (one ascent step).
@@ -325,6 +355,7 @@ impl Default for FinetuneConfig {
             steps: 3000,
             lr: 1e-5,
             consistency: 1.0,
+            anchor: Anchor::Original,
             batch_size: 16,
             regenerate: false,
             regenerate_step: 1.5e-3,
@@ -377,6 +408,16 @@ pub struct FinetuneReport {
     pub texture: Vec<f32>,
 }
 
+/// A copy of `policy` whose weights are constants holding the values in `varmap` now.
+fn frozen_copy(policy: &DiffusionPolicy, varmap: &VarMap) -> Result<DiffusionPolicy, PolicyError> {
+    let weights = crate::train::sorted_vars(varmap, |_| true)?
+        .into_iter()
+        .map(|(k, v)| Ok((k, v.as_tensor().copy()?)))
+        .collect::<Result<std::collections::HashMap<_, _>, candle_core::Error>>()?;
+    let vb = candle_nn::VarBuilder::from_tensors(weights, DType::F32, policy.device());
+    DiffusionPolicy::new(policy.config().clone(), policy.stats().clone(), vb)
+}
+
 /// Fine-tune the image encoder of `policy` (whose weights live in `varmap`, see
 /// `checkpoint::load_trainable`) against `texture (3, side, side)`; only variables under
 /// `diffusion.rgb_encoder.` change. `progress(step, loss)` is called every step.
@@ -425,6 +466,11 @@ pub fn finetune_encoder(
     let win = Windows::new(data, policy.config(), false);
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let dev = policy.device();
+    // The anchor is a constant copy of the whole policy as it is now (only its encoder runs).
+    let original = match cfg.anchor {
+        Anchor::Original => Some(frozen_copy(policy, varmap)?),
+        Anchor::Current => None,
+    };
     let mut patch = Tensor::from_vec(texture.to_vec(), (3, side, side), dev)?;
     let (mut losses, mut cons) = (Vec::new(), Vec::new());
     for step in 0..cfg.steps {
@@ -447,7 +493,11 @@ pub fn finetune_encoder(
         let f_att = policy.image_features(&attacked)?;
         let cond = policy.global_cond_from_features(&b.obs, Some(&f_att))?;
         let task = policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)?;
-        let f_clean = policy.image_features(clean)?.detach();
+        let f_clean = original
+            .as_ref()
+            .unwrap_or(policy)
+            .image_features(clean)?
+            .detach();
         let consistency = (f_att - f_clean)?.sqr()?.sum(D::Minus1)?.mean_all()?;
         let total = (task + (&consistency * cfg.consistency)?)?;
         let grads = total.backward()?;

@@ -171,7 +171,7 @@ pub fn patch(cli: &Cli, a: &crate::args::AttackPatchArgs) -> Result<()> {
 
 /// `mte defend finetune`
 pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
-    use mte_policy::patch::{FinetuneConfig, finetune_encoder, rgb_to_texture};
+    use mte_policy::patch::{Anchor, FinetuneConfig, finetune_encoder, rgb_to_texture};
     let dev = candle_core::Device::Cpu;
     let (policy, varmap) = mte_policy::checkpoint::load_trainable(&a.policy, &dev)
         .with_context(|| format!("loading {}", a.policy.display()))?;
@@ -183,6 +183,10 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
         steps: a.steps,
         lr: a.lr,
         consistency: a.consistency,
+        anchor: match a.anchor {
+            crate::args::AnchorArg::Original => Anchor::Original,
+            crate::args::AnchorArg::Current => Anchor::Current,
+        },
         batch_size: a.batch_size,
         regenerate: a.regenerate,
         seed: a.seed,

@@ -44,6 +44,7 @@ pub fn run(cli: &Cli, a: &ReportArgs) -> Result<()> {
         baseline_arm: a.baseline.clone(),
         robust_arm: a.robust.clone(),
         focus_cell: a.cell.clone(),
+        defence: a.defence.clone(),
     };
     write_and_print(cli, &a.runs, &out, &opts)
 }

@@ -1,0 +1,281 @@
+//! The defence table: one policy (a defended one, e.g. after encoder adversarial
+//! fine-tuning) against another (the undefended original) under the same corruptions, per
+//! arm (protocol section 5; paper: Table "metric").
+//!
+//! Cells pair up by policy, corruption text form and `h`: the defended policy's cell with
+//! corruption `c` and stride `h` is compared with the undefended policy's cell with the same
+//! `c` and `h`. A trained patch's text form is its directory name, so a patch re-trained
+//! against the defended policy (an adaptive attacker) pairs with the undefended policy's
+//! patch of the same name from another directory.
+//!
+//! Per row and arm: the undefended policy's clean coverage, both policies under the
+//! corruption, the defended policy's clean coverage (its clean cost), the paired difference
+//! over the seeds both ran (Wilcoxon signed-rank), the two-proportion z-test on success
+//! (independent arms, as the paper's patch tables), Holm over the rows (Wilcoxon), and the
+//! recovered fraction `(defended - undefended) / (clean - undefended)`.
+
+use mte_stats::{recovered_fraction, two_proportion_ztest};
+use serde::Serialize;
+
+use super::{
+    Block, CellData, Comparison, Estimate, ReportError, code, compare, coverages, delta, est, f3,
+    holm_opt, opt_p, pct, policy_label, stats_err, success_count, table,
+};
+
+/// Which two policies the defence table compares (policy paths as in the spec, or their
+/// last path component).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DefencePair {
+    /// The policy without the defence.
+    pub undefended: String,
+    /// The policy with it.
+    pub defended: String,
+}
+
+/// One corrupted cell pair and arm of the defence table.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DefenceRow {
+    /// Corruption text form (shared by both cells).
+    pub corruption: String,
+    /// Query stride.
+    pub h: usize,
+    /// Arm.
+    pub arm: String,
+    /// The undefended policy's cell.
+    pub undefended_cell: String,
+    /// The defended policy's cell.
+    pub defended_cell: String,
+    /// The undefended policy on its clean cell (same `h`, same arm).
+    pub clean: Option<Estimate>,
+    /// The defended policy on its clean cell (same `h`, same arm).
+    pub defended_clean: Option<Estimate>,
+    /// Defended (`other`) against undefended (`baseline`) on the seeds both ran.
+    pub comparison: Comparison,
+    /// Successes and episodes of the undefended policy under the corruption.
+    pub undefended_success: (u64, u64),
+    /// Successes and episodes of the defended policy under the corruption.
+    pub defended_success: (u64, u64),
+    /// Two-sided p of the pooled two-proportion z-test on success (`None` without episodes).
+    pub ztest_p: Option<f64>,
+    /// Holm-adjusted Wilcoxon p over the rows.
+    pub holm_wilcoxon: Option<f64>,
+    /// Recovered fraction on mean max coverage (`None` where the clean and undefended means
+    /// are equal or a side is missing).
+    pub recovered: Option<f64>,
+    /// Recovered fraction on success rate.
+    pub recovered_success: Option<f64>,
+}
+
+/// The defence table.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DefenceTable {
+    /// Undefended policy label.
+    pub undefended: String,
+    /// Defended policy label.
+    pub defended: String,
+    /// Rows: the defended policy's corrupted cells in manifest order, arms in cell order.
+    pub rows: Vec<DefenceRow>,
+}
+
+fn is_policy(cell: &CellData<'_>, name: &str) -> bool {
+    cell.spec.policy == name || policy_label(&cell.spec.policy) == name
+}
+
+/// Builds the table; `arms` are the arms to report (in order), when a cell has them.
+pub(super) fn build(
+    cells: &[CellData<'_>],
+    pair: &DefencePair,
+    arms: &[String],
+    notes: &mut Vec<String>,
+) -> Result<DefenceTable, ReportError> {
+    for (role, name) in [
+        ("undefended", &pair.undefended),
+        ("defended", &pair.defended),
+    ] {
+        if !cells.iter().any(|c| is_policy(c, name)) {
+            let mut available: Vec<&str> = Vec::new();
+            for c in cells {
+                let label = policy_label(&c.spec.policy);
+                if !available.contains(&label) {
+                    available.push(label);
+                }
+            }
+            return Err(ReportError::UnknownPolicy {
+                role,
+                policy: name.clone(),
+                available: available.join(", "),
+            });
+        }
+    }
+    let find = |name: &str, corruption: &str, h: usize| {
+        cells.iter().find(|c| {
+            is_policy(c, name) && c.spec.h == h && c.spec.corruption.to_string() == corruption
+        })
+    };
+    let clean_estimate = |name: &str, h: usize, arm: &str| -> Result<_, ReportError> {
+        match find(name, "clean", h) {
+            Some(c) => Estimate::of(
+                &coverages(c.episodes(arm)),
+                &format!("cell `{}`, arm `{arm}`", c.spec.id),
+            ),
+            None => Ok(None),
+        }
+    };
+    let mut rows = Vec::new();
+    for d in cells
+        .iter()
+        .filter(|c| !c.is_clean() && is_policy(c, &pair.defended))
+    {
+        let corruption = d.spec.corruption.to_string();
+        let Some(u) = find(&pair.undefended, &corruption, d.spec.h) else {
+            notes.push(format!(
+                "defence table: no cell of `{}` with corruption {corruption} and h = {} for `{}`",
+                pair.undefended, d.spec.h, d.spec.id
+            ));
+            continue;
+        };
+        for arm in arms.iter().filter(|a| d.has(a) && u.has(a)) {
+            let what = format!("defence `{}` vs `{}`, arm `{arm}`", d.spec.id, u.spec.id);
+            let (ue, de) = (u.episodes(arm), d.episodes(arm));
+            let comparison = compare(ue, de, arm, &what)?;
+            let (us, ds) = (
+                (success_count(ue) as u64, ue.len() as u64),
+                (success_count(de) as u64, de.len() as u64),
+            );
+            let ztest_p = if us.1 > 0 && ds.1 > 0 {
+                Some(
+                    two_proportion_ztest(ds.0, ds.1, us.0, us.1)
+                        .map_err(stats_err(what.clone()))?
+                        .p_value,
+                )
+            } else {
+                None
+            };
+            let clean = clean_estimate(&pair.undefended, d.spec.h, arm)?;
+            let mean = |e: &[&crate::record::EpisodeRecord]| {
+                (!e.is_empty()).then(|| coverages(e).iter().sum::<f64>() / e.len() as f64)
+            };
+            let recovered = match (clean, mean(ue), mean(de)) {
+                (Some(c), Some(un), Some(de)) => recovered_fraction(c.mean, un, de).ok(),
+                _ => None,
+            };
+            let clean_success = find(&pair.undefended, "clean", d.spec.h).and_then(|c| {
+                let e = c.episodes(arm);
+                (!e.is_empty()).then(|| success_count(e) as f64 / e.len() as f64)
+            });
+            let rate = |(k, n): (u64, u64)| (n > 0).then(|| k as f64 / n as f64);
+            let recovered_success = match (clean_success, rate(us), rate(ds)) {
+                (Some(c), Some(un), Some(de)) => recovered_fraction(c, un, de).ok(),
+                _ => None,
+            };
+            rows.push(DefenceRow {
+                corruption: corruption.clone(),
+                h: d.spec.h,
+                arm: arm.clone(),
+                undefended_cell: u.spec.id.clone(),
+                defended_cell: d.spec.id.clone(),
+                clean,
+                defended_clean: clean_estimate(&pair.defended, d.spec.h, arm)?,
+                comparison,
+                undefended_success: us,
+                defended_success: ds,
+                ztest_p,
+                holm_wilcoxon: None,
+                recovered,
+                recovered_success,
+            });
+        }
+    }
+    let pw: Vec<Option<f64>> = rows.iter().map(|r| r.comparison.wilcoxon_p).collect();
+    for (r, h) in rows
+        .iter_mut()
+        .zip(holm_opt(&pw, "Holm over the defence table (Wilcoxon)")?)
+    {
+        r.holm_wilcoxon = h;
+    }
+    Ok(DefenceTable {
+        undefended: pair.undefended.clone(),
+        defended: pair.defended.clone(),
+        rows,
+    })
+}
+
+impl DefenceTable {
+    /// Section 9 of the report.
+    pub(super) fn blocks(&self) -> Vec<Block> {
+        let mut b = vec![
+            Block::Heading(format!(
+                "9. Defence: {} against {}",
+                code(&self.defended),
+                code(&self.undefended)
+            )),
+            Block::Para(
+                "Cells pair by corruption and h (a patch is named by its directory). Mean max \
+                 coverage ± standard error per arm; clean: the undefended policy on its clean \
+                 cell, clean (def.): the defended one on its own (the defence's clean cost). \
+                 Δ = defended − undefended per seed ± paired standard error, p (W): Wilcoxon \
+                 signed-rank on paired coverage, Holm over the rows; success: successes / \
+                 episodes, p (z): pooled two-proportion z-test. Recovered: (defended − \
+                 undefended) / (clean − undefended), n/a where undefined."
+                    .into(),
+            ),
+        ];
+        if self.rows.is_empty() {
+            b.push(Block::Para("No pair of cells matched.".into()));
+            return b;
+        }
+        let fr = |v: Option<f64>| v.map_or_else(|| "n/a".into(), |v| format!("{v:.2}"));
+        let rows = self
+            .rows
+            .iter()
+            .map(|r| {
+                let c = &r.comparison;
+                let sr = |(k, n): (u64, u64)| {
+                    if n == 0 {
+                        "—".to_string()
+                    } else {
+                        format!("{k}/{n} ({}%)", pct(k as f64 / n as f64))
+                    }
+                };
+                vec![
+                    r.corruption.clone(),
+                    r.h.to_string(),
+                    code(&r.arm),
+                    c.n.to_string(),
+                    r.clean.map_or_else(|| "—".into(), |e| f3(e.mean)),
+                    est(c.baseline.as_ref()),
+                    est(c.other.as_ref()),
+                    r.defended_clean.map_or_else(|| "—".into(), |e| f3(e.mean)),
+                    delta(c.delta.as_ref()),
+                    opt_p(c.wilcoxon_p),
+                    opt_p(r.holm_wilcoxon),
+                    format!("{} → {}", sr(r.undefended_success), sr(r.defended_success)),
+                    opt_p(r.ztest_p),
+                    fr(r.recovered),
+                    fr(r.recovered_success),
+                ]
+            })
+            .collect();
+        b.push(table(
+            &[
+                "corruption",
+                "h",
+                "arm",
+                "n",
+                "clean",
+                "undefended",
+                "defended",
+                "clean (def.)",
+                "Δ",
+                "p (W)",
+                "Holm (W)",
+                "success",
+                "p (z)",
+                "recovered (coverage)",
+                "recovered (success)",
+            ],
+            rows,
+        ));
+        b
+    }
+}

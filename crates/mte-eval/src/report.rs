@@ -688,24 +688,13 @@ pub fn build(
             .iter()
             .position(|c| c.is_clean() && c.spec.policy == s.policy && c.spec.h == s.h)
     };
-    let clean_ref = |cj: usize| -> Result<Option<CleanRef>, ReportError> {
-        let eps = cells[cj].episodes(&baseline);
-        let what = format!("cell `{}`, arm `{baseline}`", cells[cj].spec.id);
-        Ok(
-            Estimate::of(&coverages(eps), &what)?.map(|coverage| CleanRef {
-                cell: cells[cj].spec.id.clone(),
-                coverage,
-                success: success_count(eps) as f64 / eps.len() as f64,
-            }),
-        )
-    };
 
     // 1 + 4. Main table and recovered fractions.
     let mut main = Vec::new();
     for &ci in &corrupted {
         let c = &cells[ci];
         let clean = match clean_of(ci) {
-            Some(cj) => clean_ref(cj)?,
+            Some(cj) => clean_ref(&cells[cj], &baseline)?,
             None => None,
         };
         let comparison = if c.has(&baseline) && c.has(&robust) {
@@ -927,6 +916,19 @@ fn add_counts(acc: &mut Vec<u64>, counts: &[u64]) {
     for (a, &k) in acc.iter_mut().zip(counts) {
         *a += k;
     }
+}
+
+/// `arm` on the clean cell `c` (`None` without episodes).
+fn clean_ref(c: &CellData<'_>, arm: &str) -> Result<Option<CleanRef>, ReportError> {
+    let eps = c.episodes(arm);
+    let what = format!("cell `{}`, arm `{arm}`", c.spec.id);
+    Ok(
+        Estimate::of(&coverages(eps), &what)?.map(|coverage| CleanRef {
+            cell: c.spec.id.clone(),
+            coverage,
+            success: success_count(eps) as f64 / eps.len() as f64,
+        }),
+    )
 }
 
 /// Recovered fractions of a row; `None` with the reason where undefined.
@@ -2467,10 +2469,11 @@ mod tests {
         assert!((d.mean - 0.1).abs() < 1e-12, "{d:?}");
         let clean = mean(&CLEAN_EWM);
         let want = 0.1 / (clean - mean(&Q1_EWM));
-        let got = ewm.recovered.expect("defined");
+        let got = ewm.recovered.coverage.expect("defined");
         assert!((got - want).abs() < 1e-12, "{got} vs {want}");
-        assert!((ewm.clean.expect("clean").mean - clean).abs() < 1e-12);
-        let def_clean = ewm.defended_clean.expect("defended clean").mean;
+        let clean_of = |k: Option<&CleanRef>| k.expect("clean cell").coverage.mean;
+        assert!((clean_of(ewm.clean.as_ref()) - clean).abs() < 1e-12);
+        let def_clean = clean_of(ewm.defended_clean.as_ref());
         assert!((def_clean - (clean - 0.03)).abs() < 1e-12);
         let offsets: Vec<f64> = Q1_EWM.iter().map(|x| x + 0.1).collect();
         let w = mte_stats::wilcoxon_signed_rank(&offsets, &Q1_EWM).expect("wilcoxon");
@@ -2485,7 +2488,7 @@ mod tests {
         let med = &t.rows[1];
         assert_eq!(med.arm, MEDIAN);
         assert_eq!(med.comparison.wilcoxon_p, None);
-        assert_eq!(med.recovered, Some(0.0));
+        assert_eq!(med.recovered.coverage, Some(0.0));
         assert_eq!(
             ewm.holm_wilcoxon,
             Some(w.p_value),

@@ -12,14 +12,15 @@
 //! corruption, the defended policy's clean coverage (its clean cost), the paired difference
 //! over the seeds both ran (Wilcoxon signed-rank), the two-proportion z-test on success
 //! (independent arms, as the paper's patch tables), Holm over the rows (Wilcoxon), and the
-//! recovered fraction `(defended - undefended) / (clean - undefended)`.
+//! recovered fraction `(defended - undefended) / (clean - undefended)` (the main table's
+//! rule: means over the paired seeds).
 
-use mte_stats::{recovered_fraction, two_proportion_ztest};
+use mte_stats::two_proportion_ztest;
 use serde::Serialize;
 
 use super::{
-    Block, CellData, Comparison, Estimate, ReportError, code, compare, coverages, delta, est, f3,
-    holm_opt, opt_p, pct, policy_label, stats_err, success_count, table,
+    Block, CellData, CleanRef, Comparison, Recovered, ReportError, clean_ref, code, compare, delta,
+    est, f3, holm_opt, opt_p, pct, policy_label, recovered, stats_err, success_count, table,
 };
 
 /// Which two policies the defence table compares (policy paths as in the spec, or their
@@ -46,9 +47,9 @@ pub struct DefenceRow {
     /// The defended policy's cell.
     pub defended_cell: String,
     /// The undefended policy on its clean cell (same `h`, same arm).
-    pub clean: Option<Estimate>,
+    pub clean: Option<CleanRef>,
     /// The defended policy on its clean cell (same `h`, same arm).
-    pub defended_clean: Option<Estimate>,
+    pub defended_clean: Option<CleanRef>,
     /// Defended (`other`) against undefended (`baseline`) on the seeds both ran.
     pub comparison: Comparison,
     /// Successes and episodes of the undefended policy under the corruption.
@@ -59,11 +60,9 @@ pub struct DefenceRow {
     pub ztest_p: Option<f64>,
     /// Holm-adjusted Wilcoxon p over the rows.
     pub holm_wilcoxon: Option<f64>,
-    /// Recovered fraction on mean max coverage (`None` where the clean and undefended means
-    /// are equal or a side is missing).
-    pub recovered: Option<f64>,
-    /// Recovered fraction on success rate.
-    pub recovered_success: Option<f64>,
+    /// Recovered fraction on coverage and success, by the main table's rule (means over the
+    /// paired seeds, against the undefended policy's clean cell).
+    pub recovered: Recovered,
 }
 
 /// The defence table.
@@ -112,14 +111,9 @@ pub(super) fn build(
             is_policy(c, name) && c.spec.h == h && c.spec.corruption.to_string() == corruption
         })
     };
-    let clean_estimate = |name: &str, h: usize, arm: &str| -> Result<_, ReportError> {
-        match find(name, "clean", h) {
-            Some(c) => Estimate::of(
-                &coverages(c.episodes(arm)),
-                &format!("cell `{}`, arm `{arm}`", c.spec.id),
-            ),
-            None => Ok(None),
-        }
+    let clean = |name: &str, h: usize, arm: &str| match find(name, "clean", h) {
+        Some(c) => clean_ref(c, arm),
+        None => Ok(None),
     };
     let mut rows = Vec::new();
     for d in cells
@@ -151,38 +145,22 @@ pub(super) fn build(
             } else {
                 None
             };
-            let clean = clean_estimate(&pair.undefended, d.spec.h, arm)?;
-            let mean = |e: &[&crate::record::EpisodeRecord]| {
-                (!e.is_empty()).then(|| coverages(e).iter().sum::<f64>() / e.len() as f64)
-            };
-            let recovered = match (clean, mean(ue), mean(de)) {
-                (Some(c), Some(un), Some(de)) => recovered_fraction(c.mean, un, de).ok(),
-                _ => None,
-            };
-            let clean_success = find(&pair.undefended, "clean", d.spec.h).and_then(|c| {
-                let e = c.episodes(arm);
-                (!e.is_empty()).then(|| success_count(e) as f64 / e.len() as f64)
-            });
-            let rate = |(k, n): (u64, u64)| (n > 0).then(|| k as f64 / n as f64);
-            let recovered_success = match (clean_success, rate(us), rate(ds)) {
-                (Some(c), Some(un), Some(de)) => recovered_fraction(c, un, de).ok(),
-                _ => None,
-            };
+            let undefended_clean = clean(&pair.undefended, d.spec.h, arm)?;
+            let recovered = recovered(undefended_clean.as_ref(), Some(&comparison));
             rows.push(DefenceRow {
                 corruption: corruption.clone(),
                 h: d.spec.h,
                 arm: arm.clone(),
                 undefended_cell: u.spec.id.clone(),
                 defended_cell: d.spec.id.clone(),
-                clean,
-                defended_clean: clean_estimate(&pair.defended, d.spec.h, arm)?,
+                clean: undefended_clean,
+                defended_clean: clean(&pair.defended, d.spec.h, arm)?,
                 comparison,
                 undefended_success: us,
                 defended_success: ds,
                 ztest_p,
                 holm_wilcoxon: None,
                 recovered,
-                recovered_success,
             });
         }
     }
@@ -242,17 +220,21 @@ impl DefenceTable {
                     r.h.to_string(),
                     code(&r.arm),
                     c.n.to_string(),
-                    r.clean.map_or_else(|| "—".into(), |e| f3(e.mean)),
+                    r.clean
+                        .as_ref()
+                        .map_or_else(|| "—".into(), |k| f3(k.coverage.mean)),
                     est(c.baseline.as_ref()),
                     est(c.other.as_ref()),
-                    r.defended_clean.map_or_else(|| "—".into(), |e| f3(e.mean)),
+                    r.defended_clean
+                        .as_ref()
+                        .map_or_else(|| "—".into(), |k| f3(k.coverage.mean)),
                     delta(c.delta.as_ref()),
                     opt_p(c.wilcoxon_p),
                     opt_p(r.holm_wilcoxon),
                     format!("{} → {}", sr(r.undefended_success), sr(r.defended_success)),
                     opt_p(r.ztest_p),
-                    fr(r.recovered),
-                    fr(r.recovered_success),
+                    fr(r.recovered.coverage),
+                    fr(r.recovered.success),
                 ]
             })
             .collect();

@@ -92,19 +92,19 @@ pub struct EvalPolicyArgs {
     #[arg(long, default_value_t = 100_000)]
     pub seed: u64,
     /// Episodes (seeds seed..seed+episodes).
-    #[arg(long, default_value_t = 50)]
+    #[arg(long, default_value_t = 50, value_parser = at_least_one)]
     pub episodes: usize,
     /// Reset stream.
     #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
     pub stream: StreamArg,
     /// Control steps between queries.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 8, value_parser = at_least_one)]
     pub stride: usize,
     /// `open-loop`, or an aggregator text form (e.g. `ewm:0.01`, `median`).
     #[arg(long, default_value = "ewm:0.01")]
     pub execution: String,
     /// Step limit per episode.
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 300, value_parser = at_least_one)]
     pub max_steps: usize,
     /// Seed of the policy's sampling noise.
     #[arg(long, default_value_t = 0)]
@@ -284,13 +284,13 @@ pub struct SimRolloutArgs {
     #[arg(long, default_value_t = 100_000)]
     pub seed: u64,
     /// Number of episodes.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = at_least_one)]
     pub episodes: usize,
     /// Reset stream.
     #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
     pub stream: StreamArg,
     /// Step limit per episode (gym-pusht: 300).
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 300, value_parser = at_least_one)]
     pub max_steps: usize,
     /// Write the first episode as an animated GIF (10 frames/s, with the action marker).
     #[arg(long, value_name = "FILE")]
@@ -312,7 +312,7 @@ pub struct SimBenchArgs {
 #[derive(Debug, Args)]
 pub struct DataGenerateArgs {
     /// Number of episodes.
-    #[arg(long, default_value_t = 100)]
+    #[arg(long, default_value_t = 100, value_parser = at_least_one)]
     pub episodes: usize,
     /// Base seed: episode i resets with seed + i (keep clear of the test seeds
     /// 100000-100049).
@@ -329,7 +329,7 @@ pub struct DataGenerateArgs {
     #[arg(long, default_value_t = 96)]
     pub image_size: usize,
     /// Step limit per episode.
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 300, value_parser = at_least_one)]
     pub max_steps: usize,
     /// Uniform noise added to the expert's targets (px), for more varied demonstrations.
     #[arg(long, default_value_t = 0.0)]
@@ -361,7 +361,7 @@ pub enum EnsembleCommand {
 #[derive(Debug, Args)]
 pub struct SyntheticArgs {
     /// Episodes per burst length q.
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = 20, value_parser = at_least_one)]
     pub episodes: usize,
     /// Control steps per episode.
     #[arg(long, default_value_t = 300)]
@@ -384,7 +384,7 @@ pub struct SyntheticArgs {
     #[arg(long, default_value_t = 2)]
     pub t_o: usize,
     /// Stride h: control steps between queries.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = at_least_one)]
     pub stride: usize,
     /// Action dimension.
     #[arg(long, default_value_t = 2)]
@@ -426,7 +426,7 @@ pub struct ReplayArgs {
 #[derive(Debug, Args)]
 pub struct DemoArgs {
     /// Paired episodes per cell (seeds 100000, 100001, ...: Diffusion Policy's test seeds).
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = 20, value_parser = at_least_one)]
     pub episodes: usize,
     /// Policy checkpoint directory (default: the bundled keypoint policy).
     #[arg(long, value_name = "DIR")]
@@ -442,7 +442,7 @@ pub struct DemoArgs {
     #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
     pub q: Vec<usize>,
     /// Query stride h.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = at_least_one)]
     pub stride: usize,
     /// Parallel episodes (default: all cores).
     #[arg(long)]
@@ -654,7 +654,7 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "DIR")]
     pub policy: PathBuf,
     /// Paired episodes per point (seeds 100000, ...).
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = 10, value_parser = at_least_one)]
     pub episodes: usize,
     /// Budgets (iterations), tried in increasing order.
     #[arg(long, value_delimiter = ',', default_value = "5,20,50,200,500")]
@@ -672,12 +672,21 @@ pub struct CalibrateArgs {
     #[arg(long, default_value_t = 2)]
     pub q: usize,
     /// Query stride h.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = at_least_one)]
     pub stride: usize,
     /// Stop a step size when a larger budget lowers mean coverage by less than this.
     #[arg(long, default_value_t = 0.01)]
     pub tolerance: f64,
     /// Step limit per episode.
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 300, value_parser = at_least_one)]
     pub max_steps: usize,
+}
+
+/// A count that must be positive (episodes, steps, strides): rejected at parse time.
+fn at_least_one(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Err("0: expected an integer >= 1".into()),
+        Ok(n) => Ok(n),
+        Err(e) => Err(format!("{s:?}: expected an integer >= 1 ({e})")),
+    }
 }

@@ -579,3 +579,118 @@ fn patch_finetune_and_probe_run_end_to_end() {
         .code(2)
         .stderr(predicate::str::contains("image policy"));
 }
+
+/// Inputs a hostile or careless user hands mte: each is a clear error (exit 2, naming the
+/// value and what was expected) or, for a legal but extreme stream, bounded work.
+#[test]
+fn hostile_inputs_are_clear_errors_or_bounded_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    // A stream jumping from t = 0 to t = 10^12: one gap record, not 10^12 lines.
+    fs::write(
+        p("jump.jsonl"),
+        "{\"t\": 0, \"chunk\": [[0.0], [1.0]]}\n{\"t\": 1000000000000, \"chunk\": [[2.0], [3.0]]}\n",
+    )
+    .unwrap();
+    mte()
+        .args(["ensemble", "replay"])
+        .arg(p("jump.jsonl"))
+        .args(["--t-o", "1", "--out"])
+        .arg(p("jump.out"))
+        .assert()
+        .success();
+    let lines = fs::read_to_string(p("jump.out")).unwrap();
+    assert_eq!(lines.lines().count(), 5, "{lines}");
+    assert!(lines.contains("\"through\":999999999999"), "{lines}");
+    // t = 2^64 - 1 would overflow t + span.
+    fs::write(
+        p("max.jsonl"),
+        format!("{{\"t\": {}, \"chunk\": [[0.0]]}}\n", u64::MAX),
+    )
+    .unwrap();
+    mte()
+        .args(["ensemble", "replay"])
+        .arg(p("max.jsonl"))
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("is too large: expected t <="));
+    // A config.json asking for a billion-step horizon.
+    let ckpt = p("huge");
+    fs::create_dir(&ckpt).unwrap();
+    for f in fs::read_dir(bundled()).unwrap() {
+        let f = f.unwrap().path();
+        if f.is_file() {
+            fs::copy(&f, ckpt.join(f.file_name().unwrap())).unwrap();
+        }
+    }
+    let cfg = fs::read_to_string(ckpt.join("config.json")).unwrap();
+    let mut v: serde_json::Value = serde_json::from_str(&cfg).unwrap();
+    v["horizon"] = serde_json::json!(1_000_000_000u64);
+    fs::write(ckpt.join("config.json"), v.to_string()).unwrap();
+    mte()
+        .args(["eval", "policy", "--episodes", "1", "--checkpoint"])
+        .arg(&ckpt)
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("horizon").and(predicate::str::contains("at most 1024")));
+    // Zero steps, zero episodes: refused at parse time.
+    for flag in ["--max-steps", "--episodes", "--stride"] {
+        mte()
+            .args(["eval", "policy", flag, "0", "--checkpoint"])
+            .arg(bundled())
+            .assert()
+            .code(2)
+            .stderr(predicate::str::contains(">= 1"));
+    }
+    // A burst longer than its period (M_min = 7 at T_p 16, T_o 2, h 2).
+    mte()
+        .args(["demo", "--episodes", "1", "--q", "99", "--out"])
+        .arg(p("q99"))
+        .arg("--policy")
+        .arg(bundled())
+        .assert()
+        .code(2)
+        .stderr(
+            predicate::str::contains("`q` = 99").and(predicate::str::contains("burst period 7")),
+        );
+    // A misspelt key inside a fault table.
+    fs::write(
+        p("typo.toml"),
+        "name = \"x\"\npolicies = [\"p\"]\narms = [\"median\"]\nh = [2]\nseeds = [1]\n\
+         [[corruptions]]\nfault = { kind = \"occluder\", size = 8, sise = 3 }\nq = [1]\n",
+    )
+    .unwrap();
+    mte()
+        .arg("sweep")
+        .arg(p("typo.toml"))
+        .arg("--out")
+        .arg(p("typo"))
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("unknown field `sise`"));
+}
+
+/// A sweep whose cells recorded errors exits 2 after its summary, naming the cells.
+#[test]
+fn a_sweep_with_failed_cells_exits_non_zero() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = dir.path().join("s.toml");
+    fs::write(
+        &spec,
+        "name = \"x\"\npolicies = [\"no/such/policy\"]\narms = [\"median\"]\nh = [2]\n\
+         seeds = [1]\n[[corruptions]]\nfault = { kind = \"blank\" }\nq = [1]\n",
+    )
+    .unwrap();
+    let out = mte()
+        .arg("sweep")
+        .arg(&spec)
+        .arg("--out")
+        .arg(dir.path().join("r"))
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains(
+            "1 error record(s) in 1 cell(s): policy-blank",
+        ));
+    let stdout = String::from_utf8(out.get_output().stdout.clone()).unwrap();
+    assert!(stdout.contains("1 errors"), "{stdout}");
+}

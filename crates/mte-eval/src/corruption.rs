@@ -22,7 +22,7 @@ const WORKSPACE: f64 = 512.0;
 
 /// Which queries are corrupted. Query `i` fires at control time `t_i = i h`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "kebab-case")]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum Schedule {
     /// No query.
     Never,
@@ -118,7 +118,7 @@ pub enum OracleMode {
 
 /// What a corrupted query's observation (or its candidates) suffers.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "kebab-case")]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum Fault {
     /// Nothing (a clean cell).
     None,

@@ -16,6 +16,7 @@
 
 pub mod calibrate;
 pub mod corruption;
+pub mod machine;
 pub mod patch_file;
 pub mod pusht;
 pub mod record;

@@ -157,4 +157,10 @@ pub struct Manifest {
     pub noise_seed: u64,
     /// Every cell of the grid (all shards).
     pub cells: Vec<CellSpec>,
+    /// The machines that wrote records into the run: the creating one first, then each
+    /// different machine that resumed it or ran a shard of it. Records are bit-identical
+    /// only between runs on one CPU model (`crate::machine`). Absent in runs written before
+    /// the field existed.
+    #[serde(default)]
+    pub machines: Vec<crate::machine::Machine>,
 }

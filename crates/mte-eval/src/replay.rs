@@ -11,9 +11,12 @@
 //!   (`t_o` is given to [`replay`], since the file cannot know it);
 //! - `corrupted` (optional, default `false`): whether the evaluator corrupted the query.
 //!
-//! Blank lines are skipped. Every line must have the same `t_p` and `d`. Output: one
-//! [`ReplayStep`] per control time from the first query to the last time any chunk covers,
-//! including times no chunk covers (reported with `error`, never skipped silently).
+//! Blank lines are skipped. Every line must have the same `t_p` and `d`, and `t` at most
+//! [`MAX_QUERY_TIME`]. Output: one [`ReplayStep`] per covered control time from the first
+//! query to the last time any chunk covers; a run of control times no chunk covers is one
+//! step with `error` and, when it spans more than one time, `through` (never skipped
+//! silently). Memory and output are bounded by the number of queries and the chunk window,
+//! not by the time span: a stream jumping from `t = 0` to `t = 10^12` writes one gap record.
 
 use std::io::BufRead;
 
@@ -23,6 +26,11 @@ use mte_ensemble::{
 };
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
+
+/// The largest query time a stream may hold: `2^62`, far beyond any episode (a 1 kHz
+/// controller reaches it after 146 million years) and far enough from `u64::MAX` that
+/// `t + t_p` cannot overflow.
+pub const MAX_QUERY_TIME: u64 = 1 << 62;
 
 /// One recorded query.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -79,6 +87,16 @@ pub enum ReplayError {
         t: u64,
         /// The previous line's query time.
         previous: u64,
+    },
+    /// A query time beyond [`MAX_QUERY_TIME`].
+    #[error("line {line}: query time t = {t} is too large: expected t <= {max} (2^62)")]
+    TimeOutOfRange {
+        /// Line number.
+        line: usize,
+        /// Its query time.
+        t: u64,
+        /// [`MAX_QUERY_TIME`].
+        max: u64,
     },
     /// The stream holds no record.
     #[error("the chunk stream is empty: expected at least one JSON line")]
@@ -150,6 +168,13 @@ pub fn read_stream(input: impl BufRead) -> Result<ChunkStream, ReplayError> {
                 first_line,
             });
         }
+        if rec.t > MAX_QUERY_TIME {
+            return Err(ReplayError::TimeOutOfRange {
+                line: line_no,
+                t: rec.t,
+                max: MAX_QUERY_TIME,
+            });
+        }
         if let Some((_, prev)) = records.last().filter(|(_, prev)| rec.t <= prev.t) {
             return Err(ReplayError::NotIncreasing {
                 line: line_no,
@@ -163,11 +188,14 @@ pub fn read_stream(input: impl BufRead) -> Result<ChunkStream, ReplayError> {
     Ok(ChunkStream { records, t_p, dim })
 }
 
-/// The outcome at one control time.
+/// The outcome at one control time, or at a run of control times no chunk covers.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ReplayStep {
-    /// Control time.
+    /// Control time (the first of the run, for an uncovered run).
     pub tau: u64,
+    /// The last control time of an uncovered run longer than one step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub through: Option<u64>,
     /// The executed action, absent when none could be computed.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub action: Option<Vec<f32>>,
@@ -180,12 +208,49 @@ pub struct ReplayStep {
 }
 
 /// Aggregates `stream` with `aggregator`, reading rows as a policy with `t_o` observation
-/// steps wrote them. Queries may come at any stride.
+/// steps wrote them, and collects the steps. Queries may come at any stride.
 pub fn replay(
     stream: &ChunkStream,
     t_o: usize,
     aggregator: Aggregator,
 ) -> Result<Vec<ReplayStep>, ReplayError> {
+    let mut steps = Vec::new();
+    replay_each(stream, t_o, aggregator, |s| {
+        steps.push(s);
+        Ok::<(), std::convert::Infallible>(())
+    })
+    .map_err(|e| match e {
+        SinkOr::Replay(e) => e,
+        SinkOr::Sink(never) => match never {},
+    })?;
+    Ok(steps)
+}
+
+/// A replay error or an error of the step sink.
+#[derive(Debug, Error)]
+pub enum SinkOr<E> {
+    /// The replay failed.
+    #[error(transparent)]
+    Replay(ReplayError),
+    /// The sink failed.
+    #[error("{0}")]
+    Sink(E),
+}
+
+impl<E> From<ReplayError> for SinkOr<E> {
+    fn from(e: ReplayError) -> Self {
+        Self::Replay(e)
+    }
+}
+
+/// As [`replay`], handing each step to `sink` as soon as it is computed (memory bounded by
+/// the chunk window). Each uncovered run is handed over once, when the next chunk arrives.
+pub fn replay_each<E>(
+    stream: &ChunkStream,
+    t_o: usize,
+    aggregator: Aggregator,
+    mut sink: impl FnMut(ReplayStep) -> Result<(), E>,
+) -> Result<(), SinkOr<E>> {
     // The stride only bounds how far ahead chunks may be inserted; the replay inserts each
     // chunk at its own time, so h = 1 is exact for any stride.
     let geometry =
@@ -206,11 +271,12 @@ pub fn replay(
     })?;
     let span = geometry.span() as u64;
     let first = stream.records[0].1.t;
+    // read_stream bounds t by MAX_QUERY_TIME, so this cannot overflow.
     let last = stream.records[stream.records.len() - 1].1.t + span - 1;
-    let mut steps = Vec::with_capacity((last - first + 1) as usize);
     let mut next = 0;
     let mut flat = Vec::with_capacity(stream.t_p * stream.dim);
-    for tau in first..=last {
+    let mut tau = first;
+    while tau <= last {
         while let Some((line, rec)) = stream.records.get(next).filter(|(_, r)| r.t == tau) {
             flat.clear();
             flat.extend(rec.chunk.iter().flatten());
@@ -221,28 +287,50 @@ pub fn replay(
                     corrupted: rec.corrupted,
                 },
             )
-            .map_err(|source| ReplayError::Insert {
-                line: *line,
-                source,
+            .map_err(|source| {
+                SinkOr::Replay(ReplayError::Insert {
+                    line: *line,
+                    source,
+                })
             })?;
             next += 1;
         }
-        steps.push(match ens.action(tau) {
+        let step = match ens.action(tau) {
             Ok(step) => ReplayStep {
                 tau,
+                through: None,
                 action: Some(step.action.to_vec()),
                 report: Some(step.report),
                 error: None,
             },
+            Err(e @ EnsembleError::NoCandidates { .. }) => {
+                // Nothing covers tau, so nothing covers any time before the next query.
+                let until = stream.records.get(next).map_or(last, |(_, r)| r.t - 1);
+                let step = ReplayStep {
+                    tau,
+                    through: (until > tau).then_some(until),
+                    action: None,
+                    report: None,
+                    error: Some(e.to_string()),
+                };
+                sink(step).map_err(SinkOr::Sink)?;
+                // Every live chunk ended before tau: start afresh at the next query.
+                ens.reset();
+                tau = until + 1;
+                continue;
+            }
             Err(e) => ReplayStep {
                 tau,
+                through: None,
                 action: None,
                 report: None,
                 error: Some(e.to_string()),
             },
-        });
+        };
+        sink(step).map_err(SinkOr::Sink)?;
+        tau += 1;
     }
-    Ok(steps)
+    Ok(())
 }
 
 #[cfg(test)]
@@ -263,11 +351,73 @@ mod tests {
         .unwrap();
         assert_eq!((s.t_p, s.dim, s.records.len()), (3, 1, 3));
         let steps = replay(&s, 1, Aggregator::MEDIAN).unwrap();
-        assert_eq!(steps.len(), 9); // tau 0..=8
+        assert_eq!(steps.len(), 8); // tau 0..=3, the gap 4..=5 as one record, 6..=8
         assert_eq!(steps[1].action, Some(vec![1.25]));
         assert_eq!(steps[1].report.unwrap().q, 1);
+        assert_eq!((steps[4].tau, steps[4].through), (4, Some(5)));
         assert!(steps[4].action.is_none() && steps[4].error.as_ref().unwrap().contains("no chunk"));
-        assert_eq!(steps[8].action, Some(vec![8.0]));
+        assert_eq!((steps[5].tau, steps[5].through), (6, None));
+        assert_eq!(steps[7].action, Some(vec![8.0]));
+    }
+
+    /// Against a naive per-time oracle: every covered time gets the median of the chunks
+    /// covering it, and the gap records tile exactly the uncovered times.
+    #[test]
+    fn gap_records_tile_the_uncovered_times() {
+        let times = [0u64, 2, 3, 9, 30, 31];
+        let text: String = times
+            .iter()
+            .map(|t| format!("{{\"t\": {t}, \"chunk\": [[{t}.0], [{t}.5], [{t}.75]]}}\n"))
+            .collect();
+        let steps = replay(&stream(&text).unwrap(), 1, Aggregator::Latest).unwrap();
+        let mut expected_tau = 0;
+        for s in &steps {
+            assert_eq!(s.tau, expected_tau, "{s:?}");
+            let covering: Vec<u64> = times
+                .iter()
+                .copied()
+                .filter(|&t| t <= s.tau && s.tau < t + 3)
+                .collect();
+            match s.through {
+                Some(end) => {
+                    assert!(covering.is_empty() && s.action.is_none(), "{s:?}");
+                    assert!(
+                        (s.tau..=end).all(|tau| !times.iter().any(|&t| t <= tau && tau < t + 3))
+                    );
+                    expected_tau = end + 1;
+                }
+                None => {
+                    assert_eq!(s.action.is_some(), !covering.is_empty(), "{s:?}");
+                    expected_tau = s.tau + 1;
+                }
+            }
+        }
+        assert_eq!(expected_tau, 31 + 3);
+    }
+
+    #[test]
+    fn a_huge_time_jump_is_one_gap_record_and_overflow_is_refused() {
+        let s = stream(
+            "{\"t\": 0, \"chunk\": [[0.0], [1.0]]}\n{\"t\": 1000000000000, \"chunk\": [[2.0], [3.0]]}\n",
+        )
+        .unwrap();
+        let steps = replay(&s, 1, Aggregator::MEDIAN).unwrap();
+        assert_eq!(steps.len(), 5, "{steps:?}");
+        assert_eq!((steps[2].tau, steps[2].through), (2, Some(999_999_999_999)));
+        assert_eq!(steps[4].action, Some(vec![3.0]));
+        for t in [u64::MAX, MAX_QUERY_TIME + 1] {
+            let e = stream(&format!("{{\"t\": {t}, \"chunk\": [[0.0]]}}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(&format!("t = {t} is too large")), "{e}");
+        }
+        let last = stream(&format!(
+            "{{\"t\": {MAX_QUERY_TIME}, \"chunk\": [[0.0], [1.0]]}}\n"
+        ))
+        .unwrap();
+        let steps = replay(&last, 1, Aggregator::MEDIAN).unwrap();
+        assert_eq!(steps.len(), 2);
+        assert_eq!(steps[1].tau, MAX_QUERY_TIME + 1);
     }
 
     #[test]

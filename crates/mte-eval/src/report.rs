@@ -469,6 +469,8 @@ pub struct ManifestInfo {
     pub created_unix_s: u64,
     /// Seed of the per-query sampling noise.
     pub noise_seed: u64,
+    /// The machines that wrote the records, one summary line each.
+    pub machines: Vec<String>,
 }
 
 /// The records of one cell, per arm, in seed order.
@@ -852,6 +854,7 @@ pub fn build(
             git_commit: manifest.git_commit.clone(),
             created_unix_s: manifest.created_unix_s,
             noise_seed: manifest.noise_seed,
+            machines: manifest.machines.iter().map(|m| m.summary()).collect(),
         },
         cells: cells.len(),
         corrupted_cells: corrupted.len(),
@@ -1339,6 +1342,20 @@ fn table(head: &[&str], rows: Vec<Vec<String>>) -> Block {
     }
 }
 
+/// The report's machine line: records are bit-identical only on one CPU model.
+fn machine_line(machines: &[String]) -> String {
+    match machines {
+        [] => "machine: not recorded (run written before manifests named their machine)".into(),
+        [one] => format!("machine: {one}"),
+        many => format!(
+            "machines ({}; records from different CPUs are not bit-identical, see the README's \
+             Reproducibility): {}",
+            many.len(),
+            many.join("; ")
+        ),
+    }
+}
+
 impl Report {
     fn blocks(&self) -> Vec<Block> {
         let mut b = Vec::new();
@@ -1367,6 +1384,7 @@ impl Report {
                 code(&self.baseline),
                 code(&self.robust)
             ),
+            machine_line(&m.machines),
         ];
         meta.extend(self.notes.iter().cloned());
         b.push(Block::Bullets(meta));
@@ -2025,6 +2043,12 @@ mod tests {
                 cell(Q1, blank(1)),
                 cell(Q2, blank(2)),
             ],
+            machines: vec![crate::machine::Machine {
+                cpu_model: "Example CPU".into(),
+                vector_extensions: vec!["avx2".into(), "fma".into()],
+                logical_cpus: 2,
+                target: "x86_64-linux".into(),
+            }],
         }
     }
 

@@ -106,15 +106,15 @@ impl RunDir {
                     detail,
                 });
             }
+            let mut merged = stored.clone();
+            merge_machines(&mut merged, manifest);
+            if merged != stored {
+                write_manifest(&mpath, &merged)?;
+            }
         } else {
             fs::create_dir_all(root.join("cells")).map_err(io(root))?;
             write_atomic(&root.join("spec.toml"), spec_toml.as_bytes())?;
-            let text = serde_json::to_string_pretty(manifest).map_err(|e| StoreError::Parse {
-                path: mpath.clone(),
-                line: 0,
-                reason: e.to_string(),
-            })?;
-            write_atomic(&mpath, text.as_bytes())?;
+            write_manifest(&mpath, manifest)?;
         }
         fs::create_dir_all(root.join("cells")).map_err(io(root))?;
         Ok(Self {
@@ -241,6 +241,25 @@ pub fn read_lines(path: &Path) -> Result<Vec<Line>, StoreError> {
     Ok(out)
 }
 
+/// Writes `manifest` to `path` atomically.
+fn write_manifest(path: &Path, manifest: &Manifest) -> Result<(), StoreError> {
+    let text = serde_json::to_string_pretty(manifest).map_err(|e| StoreError::Parse {
+        path: path.to_path_buf(),
+        line: 0,
+        reason: e.to_string(),
+    })?;
+    write_atomic(path, text.as_bytes())
+}
+
+/// Appends to `acc.machines` each machine of `other` it does not list yet.
+fn merge_machines(acc: &mut Manifest, other: &Manifest) {
+    for m in &other.machines {
+        if !acc.machines.contains(m) {
+            acc.machines.push(m.clone());
+        }
+    }
+}
+
 /// Reads a run's manifest.
 pub fn read_manifest(root: &Path) -> Result<Manifest, StoreError> {
     let path = root.join("manifest.json");
@@ -286,6 +305,7 @@ pub fn load_runs(roots: &[PathBuf]) -> Result<(Manifest, Vec<Line>), StoreError>
                         None => acc.cells.push(c.clone()),
                     }
                 }
+                merge_machines(acc, &m);
             }
         }
         for c in &m.cells {
@@ -324,6 +344,16 @@ mod tests {
                 seeds: vec![1, 2],
                 max_steps: 10,
             }],
+            machines: vec![machine("cpu A")],
+        }
+    }
+
+    fn machine(model: &str) -> crate::machine::Machine {
+        crate::machine::Machine {
+            cpu_model: model.into(),
+            vector_extensions: vec!["avx2".into()],
+            logical_cpus: 2,
+            target: "x86_64-linux".into(),
         }
     }
 
@@ -382,6 +412,31 @@ mod tests {
         let (m, all) = load_runs(&[root.clone(), root.clone()])?;
         assert_eq!(m.cells.len(), 1);
         assert_eq!(all.len(), 6);
+        Ok(())
+    }
+
+    #[test]
+    fn a_resume_on_another_machine_is_recorded_once() -> Result<(), StoreError> {
+        let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
+        let root = dir.path().join("run");
+        RunDir::create(&root, "", &manifest(), false)?;
+        let elsewhere = Manifest {
+            machines: vec![machine("cpu B")],
+            ..manifest()
+        };
+        // Same machine: the manifest is untouched; another machine: appended, once.
+        RunDir::create(&root, "", &manifest(), true)?;
+        assert_eq!(read_manifest(&root)?.machines, vec![machine("cpu A")]);
+        RunDir::create(&root, "", &elsewhere, true)?;
+        RunDir::create(&root, "", &elsewhere, true)?;
+        let stored = read_manifest(&root)?;
+        assert_eq!(stored.machines, vec![machine("cpu A"), machine("cpu B")]);
+        assert_eq!(stored.cells, manifest().cells);
+        // Shards written on different machines merge their machine lists.
+        let other = dir.path().join("shard");
+        RunDir::create(&other, "", &elsewhere, false)?;
+        let (m, _) = load_runs(&[other, root])?;
+        assert_eq!(m.machines, vec![machine("cpu B"), machine("cpu A")]);
         Ok(())
     }
 

@@ -252,6 +252,7 @@ impl SweepSpec {
             created_unix_s,
             noise_seed: self.noise_seed,
             cells: self.cells(),
+            machines: vec![crate::machine::Machine::detect()],
         }
     }
 }
@@ -344,6 +345,9 @@ pub struct SweepSummary {
     pub episodes_skipped: usize,
     /// Errors recorded.
     pub errors: usize,
+    /// Ids of the cells that recorded errors in this run, in cell order.
+    #[serde(default)]
+    pub failed_cells: Vec<String>,
 }
 
 /// Runs this shard of the grid into `run`, `workers` episodes at a time, skipping finished
@@ -394,10 +398,15 @@ pub fn run(
             .entry(c.policy.as_str())
             .or_insert_with(|| policies.load(&c.policy));
     }
-    let errors = Mutex::new(0usize);
+    for c in &cells {
+        if let Some(Ok((p, _))) = loaded.get(c.policy.as_str()) {
+            check_burst(c, p.horizon(), p.n_obs_steps())?;
+        }
+    }
+    let errors = Mutex::new(vec![0usize; cells.len()]);
     let append = |ci: usize, line: Line| -> Result<(), SweepError> {
         if matches!(line, Line::Error(_)) {
-            *errors.lock().map_err(|_| poisoned())? += 1;
+            errors.lock().map_err(|_| poisoned())?[ci] += 1;
         }
         writers[ci]
             .lock()
@@ -470,13 +479,47 @@ pub fn run(
     for r in results {
         episodes_run += r?;
     }
-    let errors = *errors.lock().map_err(|_| poisoned())?;
+    let errors = errors.into_inner().map_err(|_| poisoned())?;
     Ok(SweepSummary {
         cells: cells.len(),
         episodes_run,
         episodes_skipped: skipped,
-        errors,
+        errors: errors.iter().sum(),
+        failed_cells: cells
+            .iter()
+            .zip(&errors)
+            .filter(|(_, n)| **n > 0)
+            .map(|(c, _)| c.id.clone())
+            .collect(),
     })
+}
+
+/// Refuses a burst longer than its period: `q` corrupted queries of every `period` (default
+/// `M_min` of the policy's geometry at the cell's stride), so `q <= period`; a longer burst
+/// would silently equal `q = period`.
+fn check_burst(c: &CellSpec, t_p: usize, t_o: usize) -> Result<(), SweepError> {
+    let Schedule::Burst { q, period, .. } = c.corruption.schedule else {
+        return Ok(());
+    };
+    let geometry = mte_ensemble::ChunkGeometry::new(t_p, t_o, c.h).map_err(|e| {
+        field(
+            "h",
+            c.h,
+            format!("a stride the policy supports (T_p {t_p}, T_o {t_o}): {e}"),
+        )
+    })?;
+    let p = period.unwrap_or(geometry.m_min());
+    if q > p {
+        return Err(field(
+            "q",
+            q,
+            format!(
+                "at most the burst period {p} (M_min of T_p {t_p}, T_o {t_o}, h {}; cell {})",
+                c.h, c.id
+            ),
+        ));
+    }
+    Ok(())
 }
 
 fn poisoned() -> SweepError {

@@ -370,11 +370,58 @@ impl DiffusionConfig {
         })
     }
 
+    /// Upper bounds on every size, checked before anything is allocated, so that a hostile
+    /// or mistyped `config.json` (`"horizon": 1000000000`) is a typed error, not an abort
+    /// out of memory. Each bound leaves 10x or more room over the largest published
+    /// configuration (Diffusion Policy: horizon 16, down_dims up to 2048, 100 train steps;
+    /// ACT: chunk 100).
+    fn validate_sizes(&self) -> Result<(), PolicyError> {
+        let at_most = |field: &'static str, value: usize, max: usize| {
+            if value > max {
+                Err(config_err(field, value, format!("at most {max}")))
+            } else {
+                Ok(())
+            }
+        };
+        at_most("horizon", self.horizon, 1024)?;
+        at_most("n_obs_steps", self.n_obs_steps, 64)?;
+        at_most("n_action_steps", self.n_action_steps, 1024)?;
+        at_most("down_dims (length)", self.down_dims.len(), 6)?;
+        for &d in &self.down_dims {
+            at_most("down_dims", d, 16_384)?;
+        }
+        at_most("kernel_size", self.kernel_size, 63)?;
+        at_most(
+            "diffusion_step_embed_dim",
+            self.diffusion_step_embed_dim,
+            16_384,
+        )?;
+        at_most(
+            "spatial_softmax_num_keypoints",
+            self.spatial_softmax_num_keypoints,
+            4096,
+        )?;
+        at_most("vision_backbone_width", self.vision_backbone_width, 1024)?;
+        at_most("num_train_timesteps", self.num_train_timesteps, 100_000)?;
+        for f in self
+            .input_features
+            .values()
+            .chain(self.output_features.values())
+        {
+            at_most("feature shape (rank)", f.shape.len(), 3)?;
+            for &s in &f.shape {
+                at_most("feature shape", s, 4096)?;
+            }
+        }
+        Ok(())
+    }
+
     /// Check every field; errors name the field and what was expected.
     pub fn validate(&self) -> Result<(), PolicyError> {
         if self.kind != "diffusion" {
             return Err(config_err("type", &self.kind, "\"diffusion\""));
         }
+        self.validate_sizes()?;
         if self.n_obs_steps == 0 {
             return Err(config_err("n_obs_steps", self.n_obs_steps, ">= 1"));
         }

@@ -402,9 +402,11 @@ mod tests {
     fn upsample_equals_conv_transpose() {
         let dev = Device::Cpu;
         let vm = candle_nn::VarMap::new();
-        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        let vb = crate::init::seeded_var_builder(&vm, 5, DType::F32, &dev);
         let up = Upsample::new(3, 5, 4, vb).expect("init");
-        let x = Tensor::randn(0f32, 1.0, (2, 3, 7), &dev).expect("x");
+        let x = crate::kernels::test_util::rand(&[2, 3, 7], 6)
+            .to_dtype(DType::F32)
+            .expect("x");
         let native = x
             .conv_transpose1d(&up.weight, 1, 0, 2, 1, 1)
             .expect("native")

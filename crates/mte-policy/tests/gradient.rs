@@ -2,9 +2,11 @@
 //! differences on a tiny network, in float64 so the comparison is not limited by rounding.
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{VarBuilder, VarMap};
+use candle_nn::VarMap;
 use mte_policy::config::{DiffusionConfig, ObsKind};
 use mte_policy::{DiffusionPolicy, ObsBatch, Stats, StatsMap};
+
+mod common;
 
 fn tiny() -> (DiffusionPolicy, VarMap) {
     let c = DiffusionConfig::cpu(ObsKind::Keypoints)
@@ -20,7 +22,7 @@ fn tiny() -> (DiffusionPolicy, VarMap) {
     stats.insert("observation.environment_state".into(), mm(0.0, 512.0, 16));
     stats.insert("action".into(), mm(0.0, 512.0, 2));
     let vm = VarMap::new();
-    let vb = VarBuilder::from_varmap(&vm, DType::F64, &Device::Cpu);
+    let vb = mte_policy::init::seeded_var_builder(&vm, 1, DType::F64, &Device::Cpu);
     (DiffusionPolicy::new(c, stats, vb).expect("policy"), vm)
 }
 
@@ -28,10 +30,10 @@ fn tiny() -> (DiffusionPolicy, VarMap) {
 fn observation_gradient_matches_finite_differences() {
     let (p, _vm) = tiny();
     let dev = Device::Cpu;
-    let state = Tensor::randn(0f64, 0.5, (1, 2, 2), &dev).expect("s");
-    let env = Tensor::randn(0f64, 0.5, (1, 2, 16), &dev).expect("e");
-    let x0 = Tensor::randn(0f64, 0.5, (3, 16, 2), &dev).expect("x0");
-    let eps = Tensor::randn(0f64, 1.0, (3, 16, 2), &dev).expect("eps");
+    let state = common::randn(1, &[1, 2, 2], 0.5, DType::F64);
+    let env = common::randn(2, &[1, 2, 16], 0.5, DType::F64);
+    let x0 = common::randn(3, &[3, 16, 2], 0.5, DType::F64);
+    let eps = common::randn(4, &[3, 16, 2], 1.0, DType::F64);
     let ts = [3usize, 40, 97];
     let obs = ObsBatch {
         state: state.clone(),

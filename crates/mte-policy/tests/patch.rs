@@ -2,7 +2,7 @@
 //! a synthetic dataset.
 
 use candle_core::{DType, Device, Tensor, Var};
-use candle_nn::{VarBuilder, VarMap};
+use candle_nn::VarMap;
 use mte_policy::config::{DiffusionConfig, ObsKind};
 use mte_policy::patch::{
     Anchor, Ascent, FinetuneConfig, PatchConfig, finetune_encoder, gradient_probe, paste,
@@ -10,7 +10,7 @@ use mte_policy::patch::{
 };
 use mte_policy::train::{TrainData, Windows, sample_batch};
 use mte_policy::{DiffusionPolicy, ObsBatch, StatsMap};
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 mod common;
@@ -69,38 +69,6 @@ fn data() -> TrainData {
     }
 }
 
-/// The mean loss on fixed batches with the patch `texture` at `origin`.
-fn eval_loss(p: &DiffusionPolicy, d: &TrainData, texture: &Tensor, origin: [usize; 2]) -> f64 {
-    let win = Windows::new(d, p.config(), false);
-    let mut rng = ChaCha8Rng::seed_from_u64(99);
-    let mut total = 0.0;
-    for _ in 0..8 {
-        let (obs, x0) = sample_batch(p, d, &win, 8, &mut rng, false).expect("batch");
-        let x0 = Tensor::from_vec(x0, (8, 16, 2), &Device::Cpu).expect("x0");
-        // Seeded noise (candle's `randn` draws from a global generator).
-        let eps: Vec<f32> = (0..8 * 16 * 2)
-            .map(|_| rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng))
-            .collect();
-        let eps = Tensor::from_vec(eps, (8, 16, 2), &Device::Cpu).expect("eps");
-        let ts = [5usize, 20, 35, 50, 65, 80, 90, 99];
-        let imgs = paste(
-            obs.image.as_ref().expect("img"),
-            texture,
-            origin[0],
-            origin[1],
-        )
-        .expect("paste");
-        let obs = ObsBatch {
-            image: Some(imgs),
-            ..obs
-        };
-        let cond = p.global_cond(&obs).expect("cond");
-        let l = p.loss(&cond, &x0, &eps, &ts, None).expect("loss");
-        total += f64::from(l.to_scalar::<f32>().expect("scalar"));
-    }
-    total / 8.0
-}
-
 #[test]
 fn paste_replaces_exactly_the_square_and_routes_gradients_to_the_patch() {
     let img = Tensor::full(0.25f32, (2, 3, 10, 12), &Device::Cpu).expect("img");
@@ -129,11 +97,8 @@ fn paste_replaces_exactly_the_square_and_routes_gradients_to_the_patch() {
     );
 }
 
-#[test]
-fn a_trained_patch_raises_the_loss_stays_in_range_and_is_reproducible() {
-    let (p, _vm) = tiny(1);
-    let d = data();
-    let cfg = PatchConfig {
+fn patch_config(seed: u64) -> PatchConfig {
+    PatchConfig {
         side: 32,
         origin: [30, 30],
         epochs: 4,
@@ -141,24 +106,86 @@ fn a_trained_patch_raises_the_loss_stays_in_range_and_is_reproducible() {
         batch_size: 8,
         step: 0.1,
         ascent: Ascent::Sign,
-        seed: 3,
+        seed,
+    }
+}
+
+/// The loss of one fixed batch (seeded windows, noise and timesteps) with `texture` pasted
+/// at `origin`, as a graph node (so a patch `Var` gets its gradient).
+fn batch_loss(p: &DiffusionPolicy, d: &TrainData, texture: &Tensor, seed: u64) -> Tensor {
+    let win = Windows::new(d, p.config(), false);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (obs, x0) = sample_batch(p, d, &win, 8, &mut rng, false).expect("batch");
+    let x0 = Tensor::from_vec(x0, (8, 16, 2), &Device::Cpu).expect("x0");
+    let eps: Vec<f32> = (0..8 * 16 * 2)
+        .map(|_| rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng))
+        .collect();
+    let eps = Tensor::from_vec(eps, (8, 16, 2), &Device::Cpu).expect("eps");
+    let ts: Vec<usize> = (0..8).map(|_| rng.random_range(0..100)).collect();
+    let imgs = paste(obs.image.as_ref().expect("img"), texture, 30, 30).expect("paste");
+    let obs = ObsBatch {
+        image: Some(imgs),
+        ..obs
     };
+    let cond = p.global_cond(&obs).expect("cond");
+    p.loss(&cond, &x0, &eps, &ts, None).expect("loss")
+}
+
+/// What patch training rests on, as a property that holds whatever the kernels' rounding:
+/// one sign-ascent step of the patch along the gradient that reaches it through the
+/// encoder raises the loss of the batch it was computed on. The effect is the realised gain
+/// over its first-order prediction `step x |g|_1`; over seeds 1-5 it was 0.47, 1.07, 0.63,
+/// 0.56, 0.43 (mean/sd 2.4; below 1 because the step crosses ReLU and max-pool kinks), and
+/// one step involves no iteration that could amplify a rounding difference.
+///
+/// Not asserted, because it is not a clear effect on this fixture: the *held-out* loss of a
+/// trained patch against a grey one. On this random-init tiny network, over policy/patch
+/// seeds 1-5 (`patch_config`), the trained patch raised the held-out loss by +1.9%, +1.1%,
+/// -0.2%, -1.0%, -0.3% (mean +0.3%, sd 1.2%; AMD EPYC with AVX-512, 2026-11-24), so the
+/// former single-seed assertion (+1% at seed 3, measured +2.5% on one CPU) was a
+/// threshold read off one run, and failed on another CPU.
+#[test]
+fn a_sign_step_along_the_patch_gradient_raises_the_batch_loss_over_seeds() {
+    let d = data();
+    let effects: Vec<f64> = (1..=5u64)
+        .map(|seed| {
+            let (p, _vm) = tiny(seed);
+            let grey = Tensor::full(0.5f32, (3, 32, 32), &Device::Cpu).expect("grey");
+            let patch = Var::from_tensor(&grey).expect("var");
+            const STEP: f64 = 1e-3;
+            let l0 = batch_loss(&p, &d, patch.as_tensor(), 40 + seed);
+            let g = l0.backward().expect("backward");
+            let g = g.get(patch.as_tensor()).expect("the patch gets a gradient");
+            let l1_norm = f64::from(
+                g.abs()
+                    .and_then(|a| a.sum_all())
+                    .and_then(|a| a.to_scalar::<f32>())
+                    .expect("|g|"),
+            );
+            let stepped =
+                (grey.clone() + (g.sign().expect("sign") * STEP).expect("scale")).expect("step");
+            let l1 = batch_loss(&p, &d, &stepped, 40 + seed);
+            let (l0, l1) = (
+                l0.to_scalar::<f32>().expect("l0"),
+                l1.to_scalar::<f32>().expect("l1"),
+            );
+            // The realised gain over its first-order prediction (1 for a correct gradient
+            // and a small step).
+            (f64::from(l1) - f64::from(l0)) / (STEP * l1_norm)
+        })
+        .collect();
+    common::assert_clear_effect("sign-step gain / first-order prediction", &effects);
+}
+
+#[test]
+fn a_trained_patch_stays_in_range_and_is_reproducible() {
+    let (p, _vm) = tiny(1);
+    let d = data();
+    let cfg = patch_config(3);
     let r = train_patch(&p, &d, &cfg, &|_, _| {}).expect("train");
     assert_eq!(r.texture.len(), 3 * 32 * 32);
     assert_eq!(r.epoch_loss.len(), 4);
     assert!(r.texture.iter().all(|v| (0.0..=1.0).contains(v)));
-    let grey = Tensor::full(0.5f32, (3, 32, 32), &Device::Cpu).expect("grey");
-    let trained = Tensor::from_vec(r.texture.clone(), (3, 32, 32), &Device::Cpu).expect("t");
-    // Every draw is seeded, so this is deterministic; measured 1.2208 -> 1.2518 (+2.5%), and
-    // a patch that did not climb the loss would not clear +1%.
-    let (l0, l1) = (
-        eval_loss(&p, &d, &grey, [30, 30]),
-        eval_loss(&p, &d, &trained, [30, 30]),
-    );
-    assert!(
-        l1 > l0 * 1.01,
-        "held-out loss with the trained patch {l1} not 1% above the grey patch's {l0}"
-    );
     let again = train_patch(&p, &d, &cfg, &|_, _| {}).expect("train again");
     assert_eq!(again.texture, r.texture, "same seed, same patch");
     let raw = train_patch(
@@ -265,20 +292,23 @@ fn clean_features(p: &DiffusionPolicy, d: &TrainData) -> Tensor {
         .expect("features")
 }
 
+/// Measured (AMD EPYC with AVX-512, 2026-11-24): ln(current / original drift) over seeds
+/// 2-6 at 80 steps 2.05, 1.55, 0.96, 1.14, 0.88 (mean/sd 2.7); at 40 steps one seed gave
+/// 0.13 (mean/sd 1.6), too close to zero to assert across CPUs.
 #[test]
 fn the_original_anchor_holds_clean_features_where_the_frozen_head_expects_them() {
     let d = data();
     let texture = vec![0.9f32; 3 * 12 * 12];
     let cfg = |anchor| FinetuneConfig {
-        steps: 40,
+        steps: 80,
         lr: 3e-3,
         consistency: 10.0,
         anchor,
         batch_size: 4,
         ..FinetuneConfig::default()
     };
-    let run = |anchor| {
-        let (p, vm) = tiny(2);
+    let run = |anchor, seed| {
+        let (p, vm) = tiny(seed);
         let before = clean_features(&p, &d);
         let losses = std::sync::Mutex::new(Vec::new());
         finetune_encoder(&p, &vm, &d, &texture, 12, &cfg(anchor), &|_, l| {
@@ -288,17 +318,19 @@ fn the_original_anchor_holds_clean_features_where_the_frozen_head_expects_them()
         let drift = common::max_abs_diff(&before, &clean_features(&p, &d));
         (losses.into_inner().expect("losses"), drift)
     };
-    let (orig_losses, orig_drift) = run(Anchor::Original);
-    let (cur_losses, cur_drift) = run(Anchor::Current);
-    // Same weights at step 0, so the same target; the targets part once the encoder moves.
-    assert_eq!(orig_losses[0], cur_losses[0]);
-    assert_ne!(orig_losses[1], cur_losses[1]);
-    // The current-encoder target can be chased (or collapsed onto); the original one cannot,
-    // so clean features move less under it.
-    assert!(
-        orig_drift < cur_drift,
-        "clean-feature drift: original anchor {orig_drift}, current anchor {cur_drift}"
-    );
+    let mut effects = Vec::new();
+    for seed in 2..=6 {
+        let (orig_losses, orig_drift) = run(Anchor::Original, seed);
+        let (cur_losses, cur_drift) = run(Anchor::Current, seed);
+        // Same weights at step 0, so the same target; the targets part once the encoder
+        // moves.
+        assert_eq!(orig_losses[0], cur_losses[0]);
+        assert_ne!(orig_losses[1], cur_losses[1]);
+        // The current-encoder target can be chased (or collapsed onto); the original one
+        // cannot, so clean features move less under it: the log ratio of the drifts.
+        effects.push(f64::from(cur_drift / orig_drift).ln());
+    }
+    common::assert_clear_effect("ln(current-anchor drift / original-anchor drift)", &effects);
 }
 
 #[test]
@@ -314,7 +346,7 @@ fn keypoint_policies_cannot_carry_a_patch() {
         16,
     )]));
     let vm = VarMap::new();
-    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+    let vb = mte_policy::init::seeded_var_builder(&vm, 8, DType::F32, &Device::Cpu);
     let p = DiffusionPolicy::new(c, s, vb).expect("policy");
     let mut d = data();
     d.env_state = Some(vec![1.0; 48 * 16]);

@@ -65,11 +65,16 @@ pub fn run(cli: &Cli, a: &DemoArgs) -> Result<()> {
         Shard::default(),
         super::sweep::workers(a.workers)?,
     )
-    .with_context(|| {
-        format!(
-            "{} holds a different run: pass another --out",
-            a.out.display()
-        )
+    .map_err(|e| {
+        let other_grid = e
+            .downcast_ref::<mte_eval::store::StoreError>()
+            .is_some_and(|s| matches!(s, mte_eval::store::StoreError::Mismatch { .. }));
+        if other_grid {
+            let out = a.out.display();
+            e.context(format!("{out} holds a different run: pass another --out"))
+        } else {
+            e
+        }
     })?;
     super::sweep::print_summary(cli, &s, &a.out, t0.elapsed().as_secs_f64())?;
     super::report::write_and_print(
@@ -77,5 +82,6 @@ pub fn run(cli: &Cli, a: &DemoArgs) -> Result<()> {
         std::slice::from_ref(&a.out),
         &a.out,
         &ReportOptions::default(),
-    )
+    )?;
+    super::sweep::fail_on_errors(&s, &a.out)
 }

@@ -17,17 +17,24 @@ pub fn run(cli: &Cli, args: &ReplayArgs) -> Result<()> {
         let f = File::open(&args.file).with_context(|| format!("opening chunk stream {name}"))?;
         Box::new(BufReader::new(f))
     };
-    // Everything is parsed and aggregated before a byte is written.
+    // The whole stream is parsed and checked before a byte is written; steps are then
+    // written as they are computed (memory bounded by the chunk window), to a temporary
+    // file that replaces `--out` only when the replay succeeded.
     let stream = replay::read_stream(input).with_context(|| format!("in {name}"))?;
-    let steps =
-        replay::replay(&stream, args.t_o, args.aggregator).with_context(|| format!("in {name}"))?;
-    let uncovered = steps.iter().filter(|s| s.action.is_none()).count();
+    let mut tally = Tally::default();
+    let mut write = |w: &mut dyn Write| -> Result<()> {
+        replay::replay_each(&stream, args.t_o, args.aggregator, |s| {
+            tally.add(&s);
+            serde_json::to_writer(&mut *w, &s)?;
+            w.write_all(b"\n")
+        })
+        .with_context(|| format!("in {name}"))?;
+        Ok(w.flush()?)
+    };
     match &args.out {
         None => {
             let stdout = std::io::stdout();
-            let mut w = BufWriter::new(stdout.lock());
-            write_steps(&mut w, &steps)?;
-            w.flush()?;
+            write(&mut BufWriter::new(stdout.lock()))?;
         }
         Some(path) => {
             let dir = path
@@ -36,11 +43,7 @@ pub fn run(cli: &Cli, args: &ReplayArgs) -> Result<()> {
                 .unwrap_or(".".as_ref());
             let mut tmp = tempfile::NamedTempFile::new_in(dir)
                 .with_context(|| format!("creating a temporary file in {}", dir.display()))?;
-            {
-                let mut w = BufWriter::new(tmp.as_file_mut());
-                write_steps(&mut w, &steps)?;
-                w.flush()?;
-            }
+            write(&mut BufWriter::new(tmp.as_file_mut()))?;
             tmp.persist(path)
                 .with_context(|| format!("writing {}", path.display()))?;
         }
@@ -55,18 +58,27 @@ pub fn run(cli: &Cli, args: &ReplayArgs) -> Result<()> {
                 stream.t_p,
                 stream.dim,
                 args.aggregator,
-                steps.len(),
-                uncovered
+                tally.steps,
+                tally.uncovered
             );
         }
     }
     Ok(())
 }
 
-fn write_steps(w: &mut impl Write, steps: &[replay::ReplayStep]) -> Result<()> {
-    for s in steps {
-        serde_json::to_writer(&mut *w, s)?;
-        w.write_all(b"\n")?;
+/// Control steps written and those without an action (an uncovered run counts its length).
+#[derive(Default)]
+struct Tally {
+    steps: u64,
+    uncovered: u64,
+}
+
+impl Tally {
+    fn add(&mut self, s: &replay::ReplayStep) {
+        let n = s.through.map_or(1, |end| end - s.tau + 1);
+        self.steps += n;
+        if s.action.is_none() {
+            self.uncovered += n;
+        }
     }
-    Ok(())
 }

@@ -68,7 +68,22 @@ pub fn run(cli: &Cli, a: &SweepArgs) -> Result<()> {
     let shard: Shard = a.shard.parse()?;
     let t0 = std::time::Instant::now();
     let s = execute(cli, &spec, &a.out, a.resume, shard, workers(a.workers)?)?;
-    print_summary(cli, &s, &a.out, t0.elapsed().as_secs_f64())
+    print_summary(cli, &s, &a.out, t0.elapsed().as_secs_f64())?;
+    fail_on_errors(&s, &a.out)
+}
+
+/// A sweep that recorded errors fails (exit 2) after its summary, naming the cells.
+pub fn fail_on_errors(s: &SweepSummary, out: &Path) -> Result<()> {
+    if s.failed_cells.is_empty() {
+        return Ok(());
+    }
+    anyhow::bail!(
+        "{} error record(s) in {} cell(s): {} (the reasons are the \"error\" lines of {})",
+        s.errors,
+        s.failed_cells.len(),
+        s.failed_cells.join(", "),
+        out.join("cells").display()
+    )
 }
 
 /// Prints what a sweep did.

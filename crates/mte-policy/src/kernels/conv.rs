@@ -330,7 +330,7 @@ mod tests {
     #[test]
     fn f32_and_layer_bias() -> Result<()> {
         let vm = candle_nn::VarMap::new();
-        let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+        let vb = crate::init::seeded_var_builder(&vm, 7, DType::F32, &Device::Cpu);
         let layer = Conv2d::new(3, 5, 3, 1, 1, true, vb.pp("c"))?;
         let x = rand(&[1, 3, 6, 6], 9).to_dtype(DType::F32)?;
         let y = layer.forward(&x)?;

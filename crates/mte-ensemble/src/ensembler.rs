@@ -213,6 +213,8 @@ pub struct TemporalEnsembler<A: Aggregate = Aggregator> {
     // Per-step scratch: the candidate matrix, its flags, the output.
     cand: Vec<f32>,
     cand_corrupted: Vec<bool>,
+    /// Candidates aggregated by the last successful step (0 before the first).
+    last_used: usize,
     out: Vec<f32>,
     workspace: Workspace,
 }
@@ -256,6 +258,7 @@ impl<A: Aggregate> TemporalEnsembler<A> {
             cursor: None,
             cand: vec![0.0; span * stride],
             cand_corrupted: vec![false; span],
+            last_used: 0,
             out: vec![0.0; dim],
             workspace: Workspace::new(span, stride),
         })
@@ -286,8 +289,20 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         self.len
     }
 
+    /// The candidates the last successful step aggregated (after any hook), oldest first,
+    /// with their corrupted flags: what a runtime monitor or an observer reads. Empty before
+    /// the first step and after [`reset`](Self::reset).
+    pub fn last_candidates(&self) -> (Candidates<'_>, &[bool]) {
+        let used = self.last_used;
+        (
+            Candidates::from_checked(&self.cand[..used * self.stride], self.dim, self.stride),
+            &self.cand_corrupted[..used],
+        )
+    }
+
     /// Forgets every chunk and the time cursor, for a new episode. Does not allocate.
     pub fn reset(&mut self) {
+        self.last_used = 0;
         self.head = 0;
         self.len = 0;
         self.last_query = None;
@@ -393,7 +408,19 @@ impl<A: Aggregate> TemporalEnsembler<A> {
 
     /// The aggregated action for control time `tau`, borrowed until the next call.
     pub fn action(&mut self, tau: u64) -> Result<Step<'_>, EnsembleError> {
-        let (report, bracket) = self.compute(tau)?;
+        self.action_with(tau, &mut NoHook)
+    }
+
+    /// Like [`action`](Self::action), letting `hook` rewrite the candidate set of `tau` in
+    /// place after it is gathered and before it is aggregated (and diagnosed): the seam
+    /// through which oracle attacks and common-mode bias act on the real candidates. A hook
+    /// that leaves a non-finite value is an error ([`EnsembleError::HookNonFinite`]).
+    pub fn action_with(
+        &mut self,
+        tau: u64,
+        hook: &mut dyn CandidateHook,
+    ) -> Result<Step<'_>, EnsembleError> {
+        let (report, bracket) = self.compute(tau, hook)?;
         Ok(Step {
             action: &self.out,
             report,
@@ -403,12 +430,16 @@ impl<A: Aggregate> TemporalEnsembler<A> {
 
     /// Like [`action`](Self::action), writing the action into `out` (`d` coordinates).
     pub fn action_into(&mut self, tau: u64, out: &mut [f32]) -> Result<StepReport, EnsembleError> {
-        let (report, _) = self.compute(tau)?;
+        let (report, _) = self.compute(tau, &mut NoHook)?;
         out.copy_from_slice(&self.out);
         Ok(report)
     }
 
-    fn compute(&mut self, tau: u64) -> Result<(StepReport, Option<BracketReport>), EnsembleError> {
+    fn compute(
+        &mut self,
+        tau: u64,
+        hook: &mut dyn CandidateHook,
+    ) -> Result<(StepReport, Option<BracketReport>), EnsembleError> {
         if let Some(cursor) = self.cursor.filter(|&c| tau < c) {
             return Err(EnsembleError::TimeWentBackwards { tau, cursor });
         }
@@ -434,6 +465,22 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         if g.used == 0 {
             return Err(EnsembleError::NoFiniteCandidates { tau, excluded: g.m });
         }
+        if hook.active() {
+            let (d, stride) = (self.dim, self.stride);
+            let mut set = CandidatesMut {
+                tau,
+                dim: d,
+                stride,
+                values: &mut self.cand[..g.used * stride],
+                corrupted: &self.cand_corrupted[..g.used],
+            };
+            hook.rewrite(&mut set);
+            let bad = (0..g.used).find(|&i| !all_finite(&self.cand[i * stride..i * stride + d]));
+            if let Some(index) = bad {
+                return Err(EnsembleError::HookNonFinite { tau, index });
+            }
+        }
+        self.last_used = g.used;
         let cands =
             Candidates::from_checked(&self.cand[..g.used * self.stride], self.dim, self.stride);
         self.aggregator
@@ -499,6 +546,79 @@ impl<A: Aggregate> TemporalEnsembler<A> {
             g.used += 1;
         }
         g
+    }
+}
+
+/// A rewrite of one control time's candidate set before aggregation (see
+/// [`TemporalEnsembler::action_with`]). Implemented for closures over [`CandidatesMut`].
+pub trait CandidateHook {
+    /// Whether the hook acts at all (a hook that returns `false` costs nothing).
+    fn active(&self) -> bool {
+        true
+    }
+    /// Rewrites the candidates in place.
+    fn rewrite(&mut self, set: &mut CandidatesMut<'_>);
+}
+
+impl<F: FnMut(&mut CandidatesMut<'_>)> CandidateHook for F {
+    fn rewrite(&mut self, set: &mut CandidatesMut<'_>) {
+        self(set);
+    }
+}
+
+/// The hook that does nothing.
+struct NoHook;
+
+impl CandidateHook for NoHook {
+    fn active(&self) -> bool {
+        false
+    }
+    fn rewrite(&mut self, _: &mut CandidatesMut<'_>) {}
+}
+
+/// The finite candidates of one control time, oldest first, as a hook sees them: `d`
+/// values per candidate, writable; whether each came from a corrupted query.
+#[derive(Debug)]
+pub struct CandidatesMut<'a> {
+    tau: u64,
+    dim: usize,
+    stride: usize,
+    values: &'a mut [f32],
+    corrupted: &'a [bool],
+}
+
+impl CandidatesMut<'_> {
+    /// The control time.
+    pub fn tau(&self) -> u64 {
+        self.tau
+    }
+    /// Number of candidates.
+    pub fn len(&self) -> usize {
+        self.corrupted.len()
+    }
+    /// Whether there is no candidate (never, inside a hook).
+    pub fn is_empty(&self) -> bool {
+        self.corrupted.is_empty()
+    }
+    /// Action dimension `d`.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+    /// Candidate `i` (oldest first), `d` values.
+    pub fn row(&self, i: usize) -> &[f32] {
+        &self.values[i * self.stride..i * self.stride + self.dim]
+    }
+    /// Candidate `i`, writable.
+    pub fn row_mut(&mut self, i: usize) -> &mut [f32] {
+        &mut self.values[i * self.stride..i * self.stride + self.dim]
+    }
+    /// Whether candidate `i` came from a query flagged corrupted.
+    pub fn corrupted(&self, i: usize) -> bool {
+        self.corrupted[i]
+    }
+    /// Coordinate `j` of candidate `i`.
+    pub fn get(&self, i: usize, j: usize) -> f32 {
+        self.values[i * self.stride + j]
     }
 }
 

@@ -131,6 +131,17 @@ pub enum EnsembleError {
         /// Candidates excluded as non-finite.
         excluded: usize,
     },
+    /// A candidate hook left a NaN or infinite coordinate in the candidate set.
+    #[error(
+        "the candidate hook left a non-finite value in candidate {index} of control time {tau}: \
+         hooks must keep candidates finite"
+    )]
+    HookNonFinite {
+        /// Control time.
+        tau: u64,
+        /// Candidate index (oldest first).
+        index: usize,
+    },
     /// An aggregation failed.
     #[error(transparent)]
     Aggregate(#[from] AggregateError),

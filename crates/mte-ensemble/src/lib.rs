@@ -89,6 +89,9 @@ pub use aggregate::{
     Aggregate, Aggregator, Candidates, DEFAULT_EWM_M, MedianTie, WeightOrder, Workspace,
 };
 pub use bracket::{BracketAccumulator, BracketReport, BracketRow};
-pub use ensembler::{EnsemblerOptions, QueryMeta, Regime, Step, StepReport, TemporalEnsembler};
+pub use ensembler::{
+    CandidateHook, CandidatesMut, EnsemblerOptions, QueryMeta, Regime, Step, StepReport,
+    TemporalEnsembler,
+};
 pub use error::{AggregateError, EnsembleError, GeometryError, ParseAggregatorError};
 pub use geometry::ChunkGeometry;

@@ -16,22 +16,22 @@
 //!
 //! ## Corruption
 //!
-//! Observation faults go through [`ObservationCorruptor`]. Common-mode bias `b(tau)` is
-//! added to every candidate of `tau` when the newest query covering `tau` is corrupted; all
-//! aggregators offered are translation-equivariant, so the runner adds `b(tau)` to the
-//! output, which equals shifting every candidate (and keeps the ensembler's candidates
-//! clean for the diagnostics). Oracle bracket attacks rewrite corrupted candidates per
-//! control time from the clean bracket, so they assemble candidates here and call the
-//! aggregator directly. `q(tau)` and `M(tau)` are measured and recorded at every step.
+//! Observation faults go through [`ObservationCorruptor`] (stage *corrupt*); PGD replaces
+//! the query of a corrupted window (stage *query*); candidate faults act on the real
+//! ensembler's candidates through its [`CandidateHook`] (stage *ensemble*): oracle bracket
+//! attacks rewrite the corrupted candidates of each control time from the clean bracket,
+//! and common-mode bias `b(tau)` shifts every covering candidate while the newest query
+//! covering `tau` is corrupted (in open loop, the executed row). `q(tau)` and `M(tau)` are
+//! measured and recorded at every step. [`crate::episode`] names the stages and the
+//! observer interface ([`run_episode_observed`]).
 
 use std::fmt;
 use std::str::FromStr;
 use std::time::Instant;
 
-use mte_ensemble::bracket::diagnose;
 use mte_ensemble::{
-    Aggregate, Aggregator, BracketAccumulator, Candidates, ChunkGeometry, EnsembleError,
-    EnsemblerOptions, QueryMeta, Regime, StepReport, TemporalEnsembler, Workspace,
+    Aggregator, BracketAccumulator, CandidateHook, Candidates, CandidatesMut, ChunkGeometry,
+    EnsembleError, EnsemblerOptions, QueryMeta, TemporalEnsembler,
 };
 use mte_policy::{ChunkPolicy, Observation, PolicyError};
 use mte_sim::render::Renderer;
@@ -40,6 +40,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::corruption::{CorruptionSpec, Fault, ObservationCorruptor, OracleMode};
+use crate::episode::{EpisodeObserver, NoObserver, QueryEvent, StepEvent};
 use crate::record::{EpisodeRecord, StageTimes};
 
 /// How chunks become actions.
@@ -186,76 +187,168 @@ fn observe(
     })
 }
 
-/// Candidate assembly for oracle attacks: the live chunks and their flags.
-struct OracleState {
+/// A fault that rewrites the candidates of the real ensembler through its candidate hook.
+#[derive(Debug)]
+enum CandidateFault {
+    /// Candidates are left as the policy made them.
+    None(Inactive),
+    /// Corrupted candidates are rewritten from the clean bracket (oracle attacks).
+    Oracle(OracleHook),
+    /// Every candidate is shifted by the same bias while the newest query is corrupted.
+    CommonMode(ShiftHook),
+}
+
+/// The oracle bracket attack: per coordinate, every corrupted candidate is set to one end
+/// of the clean candidates' range (`Drift`: the end given by a per-episode direction;
+/// `Instant`: the end that moves the median farthest), when `0 < q < M`.
+#[derive(Debug)]
+struct OracleHook {
     mode: OracleMode,
     /// Per coordinate: +1 pushes towards the bracket's top, -1 towards its bottom (drift).
     direction: Vec<f32>,
-    live: Vec<(u64, Vec<f32>, bool)>,
-    ws: Workspace,
-    values: Vec<f32>,
-    flags: Vec<bool>,
+    clean: Vec<f32>,
+    with: Vec<f32>,
     scratch: Vec<f32>,
 }
 
-impl OracleState {
-    /// Candidates for `tau` with corrupted ones rewritten; returns (m, q).
-    fn candidates(&mut self, g: ChunkGeometry, d: usize, tau: u64) -> (usize, usize) {
-        let span = g.span() as u64;
-        self.live.retain(|(t, _, _)| t + span > tau);
-        self.values.clear();
-        self.flags.clear();
-        for (t, chunk, corrupted) in &self.live {
-            if let Some(r) = g.candidate_row(*t, tau) {
-                self.values.extend_from_slice(&chunk[r * d..(r + 1) * d]);
-                self.flags.push(*corrupted);
-            }
-        }
-        let m = self.flags.len();
-        let q = self.flags.iter().filter(|&&c| c).count();
+impl CandidateHook for OracleHook {
+    fn rewrite(&mut self, set: &mut CandidatesMut<'_>) {
+        let m = set.len();
+        let q = (0..m).filter(|&i| set.corrupted(i)).count();
         if q == 0 || q == m {
-            return (m, q);
+            return;
         }
-        for j in 0..d {
-            let clean: Vec<f32> = (0..m)
-                .filter(|&i| !self.flags[i])
-                .map(|i| self.values[i * d + j])
-                .collect();
-            let lo = clean.iter().copied().fold(f32::INFINITY, f32::min);
-            let hi = clean.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-            let target = match self.mode {
-                OracleMode::Drift => {
-                    if self.direction[j] >= 0.0 {
-                        hi
-                    } else {
-                        lo
-                    }
-                }
-                OracleMode::Instant => {
-                    // The end that moves the coordinate-wise median farthest from the
-                    // clean candidates' median.
-                    let base = median(&clean, &mut self.scratch);
-                    let with = |v: f32, s: &mut Vec<f32>| {
-                        let mut all = clean.clone();
-                        all.extend(std::iter::repeat_n(v, q));
-                        median(&all, s)
-                    };
-                    let (up, down) = (with(hi, &mut self.scratch), with(lo, &mut self.scratch));
-                    if (up - base).abs() >= (down - base).abs() {
-                        hi
-                    } else {
-                        lo
-                    }
-                }
-            };
+        for j in 0..set.dim() {
+            self.clean.clear();
+            self.clean
+                .extend((0..m).filter(|&i| !set.corrupted(i)).map(|i| set.get(i, j)));
+            let target = self.target(j, q);
             for i in 0..m {
-                if self.flags[i] {
-                    self.values[i * d + j] = target;
+                if set.corrupted(i) {
+                    set.row_mut(i)[j] = target;
                 }
             }
         }
-        (m, q)
     }
+}
+
+impl OracleHook {
+    /// The value every corrupted candidate takes in coordinate `j` (`clean` holds the clean
+    /// candidates' values there).
+    fn target(&mut self, j: usize, q: usize) -> f32 {
+        let lo = self.clean.iter().copied().fold(f32::INFINITY, f32::min);
+        let hi = self.clean.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        match self.mode {
+            OracleMode::Drift if self.direction[j] >= 0.0 => hi,
+            OracleMode::Drift => lo,
+            OracleMode::Instant => {
+                // The end that moves the coordinate-wise median farthest from the clean
+                // candidates' median.
+                let base = median(&self.clean, &mut self.scratch);
+                let mut median_with = |v: f32| {
+                    self.with.clear();
+                    self.with.extend_from_slice(&self.clean);
+                    self.with.extend(std::iter::repeat_n(v, q));
+                    median(&self.with, &mut self.scratch)
+                };
+                let (up, down) = (median_with(hi), median_with(lo));
+                if (up - base).abs() >= (down - base).abs() {
+                    hi
+                } else {
+                    lo
+                }
+            }
+        }
+    }
+}
+
+/// Common-mode bias on the candidates: while `on`, every candidate's first two coordinates
+/// are shifted by `bias` (px).
+#[derive(Debug)]
+struct ShiftHook {
+    bias: [f32; 2],
+    on: bool,
+}
+
+impl CandidateHook for ShiftHook {
+    fn active(&self) -> bool {
+        self.on
+    }
+    fn rewrite(&mut self, set: &mut CandidatesMut<'_>) {
+        for i in 0..set.len() {
+            for (x, b) in set.row_mut(i).iter_mut().zip(self.bias) {
+                *x += b;
+            }
+        }
+    }
+}
+
+impl CandidateFault {
+    fn new(spec: &EpisodeSpec<'_>, d: usize, clean: bool) -> Result<Self, RolloutError> {
+        Ok(match (&spec.corruption.fault, spec.execution) {
+            _ if clean => Self::None(Inactive),
+            (Fault::Oracle { .. }, Execution::OpenLoop) => {
+                return Err(RolloutError::Config {
+                    field: "arm",
+                    value: "open-loop".into(),
+                    expected: "an aggregator: oracle attacks rewrite an ensembler's candidates"
+                        .into(),
+                });
+            }
+            (Fault::Oracle { mode }, Execution::Ensemble(_)) => {
+                let mut r = query_rng(spec.noise_seed, spec.seed, 0, 2);
+                Self::Oracle(OracleHook {
+                    mode: *mode,
+                    direction: (0..d)
+                        .map(|_| if r.random_bool(0.5) { 1.0 } else { -1.0 })
+                        .collect(),
+                    clean: Vec::new(),
+                    with: Vec::new(),
+                    scratch: Vec::new(),
+                })
+            }
+            (
+                Fault::CommonMode {
+                    magnitude,
+                    angle_deg,
+                },
+                _,
+            ) => {
+                let a = angle_deg.to_radians();
+                Self::CommonMode(ShiftHook {
+                    bias: [(magnitude * a.cos()) as f32, (magnitude * a.sin()) as f32],
+                    on: false,
+                })
+            }
+            _ => Self::None(Inactive),
+        })
+    }
+
+    /// Whether a corrupted query's candidates count as corrupted: not under common-mode
+    /// bias, which shifts every candidate alike (no clean bracket to measure against).
+    fn flags_corrupted(&self) -> bool {
+        !matches!(self, Self::CommonMode(_))
+    }
+
+    /// The ensembler's hook.
+    fn hook(&mut self) -> &mut dyn CandidateHook {
+        match self {
+            Self::Oracle(h) => h,
+            Self::CommonMode(h) => h,
+            Self::None(h) => h,
+        }
+    }
+}
+
+/// A hook that never acts (the ensembler then skips the hook entirely).
+#[derive(Debug)]
+struct Inactive;
+
+impl CandidateHook for Inactive {
+    fn active(&self) -> bool {
+        false
+    }
+    fn rewrite(&mut self, _: &mut CandidatesMut<'_>) {}
 }
 
 fn median(v: &[f32], s: &mut Vec<f32>) -> f32 {
@@ -277,239 +370,321 @@ fn bump(counts: &mut Vec<u64>, k: usize) {
     counts[k] += 1;
 }
 
+/// The record-keeping observer: query counts, `M(tau)` and `q(tau)` histograms, bracket
+/// accounting.
+#[derive(Debug, Default)]
+struct Recorder {
+    queries: usize,
+    corrupted_queries: usize,
+    m_counts: Vec<u64>,
+    q_counts: Vec<u64>,
+    bracket: BracketAccumulator,
+}
+
+impl EpisodeObserver for Recorder {
+    fn on_query(&mut self, e: &QueryEvent<'_>) {
+        self.queries += 1;
+        self.corrupted_queries += usize::from(e.corrupted);
+    }
+    fn on_step(&mut self, e: &StepEvent<'_>) {
+        bump(&mut self.m_counts, e.m);
+        bump(&mut self.q_counts, e.q);
+        if let (Some(r), Some(b)) = (e.report, e.bracket) {
+            self.bracket.record(&r, &b);
+        }
+    }
+}
+
+/// How the arm turns chunks into actions.
+enum Executor {
+    /// `h` actions of the latest chunk.
+    OpenLoop,
+    /// The streaming ensembler (boxed: it is large and built once per episode).
+    Ensemble(Box<TemporalEnsembler<Aggregator>>),
+}
+
+/// One episode of one arm, between stages.
+struct Episode<'p, 's> {
+    policy: &'p dyn ChunkPolicy,
+    spec: &'s EpisodeSpec<'s>,
+    geometry: ChunkGeometry,
+    env: PushT,
+    renderer: Option<Renderer>,
+    corruptor: ObservationCorruptor,
+    candidate_fault: CandidateFault,
+    executor: Executor,
+    /// The last `keep` observations, oldest first.
+    frames: Vec<Observation>,
+    keep: usize,
+    chunk: Vec<f32>,
+    out: Vec<f32>,
+    /// Whether the newest query was corrupted, and whether its candidates are flagged.
+    newest_corrupted: bool,
+    newest_flag: [bool; 1],
+    steps: usize,
+    max_coverage: f64,
+    success: bool,
+    times: StageTimes,
+}
+
 /// Run one episode of one arm. The returned record's `cell` is empty (the caller names it).
 pub fn run_episode(
     policy: &dyn ChunkPolicy,
     spec: &EpisodeSpec<'_>,
 ) -> Result<EpisodeRecord, RolloutError> {
-    let t_start = Instant::now();
-    let (t_p, t_o, d) = (policy.horizon(), policy.n_obs_steps(), policy.action_dim());
-    let h = spec.h;
-    if h == 0 || h + t_o > t_p + 1 {
-        return Err(RolloutError::Config {
-            field: "h",
-            value: h.to_string(),
-            expected: format!("1..={} (T_p - T_o + 1)", t_p + 1 - t_o),
-        });
-    }
-    spec.corruption.validate()?;
-    let geometry = ChunkGeometry { t_p, t_o, h };
-    let fault = &spec.corruption.fault;
-    let schedule = &spec.corruption.schedule;
-    let clean = spec.corruption.is_clean();
-    let mut times = StageTimes::default();
+    run_episode_observed(policy, spec, &mut NoObserver)
+}
 
-    let t = Instant::now();
-    let mut env = PushT::default();
-    env.reset(spec.seed, spec.stream)?;
-    times.sim_s += t.elapsed().as_secs_f64();
-    let mut renderer = spec.needs.image.map(|_| Renderer::new(env.goal()));
-    let mut oracle = match (fault, spec.execution) {
-        (Fault::Oracle { mode }, Execution::Ensemble(_)) if !clean => {
-            let mut r = query_rng(spec.noise_seed, spec.seed, 0, 2);
-            Some(OracleState {
-                mode: *mode,
-                direction: (0..d)
-                    .map(|_| if r.random_bool(0.5) { 1.0 } else { -1.0 })
-                    .collect(),
-                live: Vec::new(),
-                ws: Workspace::new(geometry.span() + h, d),
-                values: Vec::new(),
-                flags: Vec::new(),
-                scratch: Vec::new(),
-            })
+/// [`run_episode`], telling `observer` every query and every control step
+/// ([`crate::episode`] gives the stages).
+pub fn run_episode_observed(
+    policy: &dyn ChunkPolicy,
+    spec: &EpisodeSpec<'_>,
+    observer: &mut dyn EpisodeObserver,
+) -> Result<EpisodeRecord, RolloutError> {
+    let t_start = Instant::now();
+    let mut ep = Episode::new(policy, spec)?;
+    let mut rec = Recorder::default();
+    while ep.steps < spec.max_steps {
+        ep.observe()?;
+        if ep.steps % spec.h == 0 {
+            let event = ep.query()?;
+            rec.on_query(&event);
+            observer.on_query(&event);
         }
-        (Fault::Oracle { .. }, Execution::OpenLoop) if !clean => {
-            return Err(RolloutError::Config {
-                field: "arm",
-                value: "open-loop".into(),
-                expected: "an aggregator: oracle attacks rewrite an ensembler's candidates".into(),
-            });
-        }
-        _ => None,
-    };
-    // Oracle attacks assemble their own candidates; every other ensemble arm uses the
-    // streaming ensembler.
-    let mut ens = match (spec.execution, &oracle) {
-        (Execution::Ensemble(a), None) => Some(TemporalEnsembler::with_options(
-            geometry,
-            d,
-            a,
-            EnsemblerOptions {
-                lookahead: None,
-                bracket_diagnostics: !clean,
-            },
-        )?),
-        _ => None,
-    };
-    let bias: Option<[f32; 2]> = match *fault {
-        Fault::CommonMode {
-            magnitude,
-            angle_deg,
-        } => {
-            let a = angle_deg.to_radians();
-            Some([(magnitude * a.cos()) as f32, (magnitude * a.sin()) as f32])
-        }
-        _ => None,
-    };
-    let mut corruptor = match fault {
-        Fault::Patch { path } => {
-            let Some((w, h)) = spec.needs.image else {
-                return Err(RolloutError::Config {
-                    field: "fault",
-                    value: fault.to_string(),
-                    expected: "an image policy (a patch is drawn into camera frames)".into(),
-                });
-            };
-            let (_, patch) = crate::patch_file::load(path).map_err(|e| RolloutError::Config {
-                field: "fault.path",
-                value: path.display().to_string(),
-                expected: format!("a patch directory ({e})"),
-            })?;
-            // Fails here, not per frame, if the texture does not fit the frame.
-            patch.origin(w, h).map_err(|e| RolloutError::Config {
-                field: "fault.path",
-                value: path.display().to_string(),
-                expected: e.to_string(),
-            })?;
-            ObservationCorruptor::with_patch(fault.clone(), patch)
-        }
-        _ => ObservationCorruptor::new(fault.clone()),
-    };
-    let keep = corruptor.frames_needed(t_o).max(t_o + 1);
-    let mut frames: Vec<Observation> = Vec::with_capacity(keep + 1);
-    let mut chunk = Vec::new();
-    let mut out = vec![0f32; d];
-    let mut max_coverage = env.coverage();
-    let (mut queries, mut corrupted_queries) = (0usize, 0usize);
-    // Whether the newest query was corrupted, and whether its candidates count as corrupted
-    // (not under common-mode bias, which shifts every candidate alike: no clean bracket).
-    let (mut newest_corrupted, mut newest_flagged) = (false, false);
-    let (mut m_counts, mut q_counts) = (Vec::new(), Vec::new());
-    let mut bracket = BracketAccumulator::default();
-    let m_min = geometry.m_min();
-    let mut success = false;
-    let mut steps = 0;
-    while steps < spec.max_steps {
-        let t = Instant::now();
-        let o = observe(&env, spec.needs, &mut renderer)?;
-        times.render_s += t.elapsed().as_secs_f64();
-        if frames.is_empty() {
-            frames = vec![o; keep];
-        } else {
-            frames.remove(0);
-            frames.push(o);
-        }
-        let k = steps % h;
-        if k == 0 {
-            let i = (steps / h) as u64;
-            let t = Instant::now();
-            let mut crng = query_rng(spec.noise_seed, spec.seed, i, 1);
-            let corrupted = !clean && schedule.corrupts(i, steps as u64, m_min, &mut crng);
-            let window = corruptor.window(&frames, t_o, corrupted, spec.needs.image, &mut crng);
-            times.corruption_s += t.elapsed().as_secs_f64();
-            let t = Instant::now();
-            let mut srng = query_rng(spec.noise_seed, spec.seed, i, 0);
-            chunk = match fault {
-                Fault::Pgd(cfg) if corrupted => {
-                    let c = policy.predict_chunk_attacked(&window, cfg, &mut crng, &mut srng)?;
-                    times.corruption_s += t.elapsed().as_secs_f64();
-                    c
-                }
-                _ => {
-                    let c = policy.predict_chunk(&window, &mut srng)?;
-                    times.policy_s += t.elapsed().as_secs_f64();
-                    c
-                }
-            };
-            queries += 1;
-            corrupted_queries += usize::from(corrupted);
-            newest_corrupted = corrupted;
-            newest_flagged = corrupted && bias.is_none();
-            let t = Instant::now();
-            if let Some(o) = oracle.as_mut() {
-                o.live.push((steps as u64, chunk.clone(), newest_flagged));
-            } else if let Some(e) = ens.as_mut() {
-                e.insert(
-                    steps as u64,
-                    &chunk,
-                    QueryMeta {
-                        corrupted: newest_flagged,
-                    },
-                )?;
-            }
-            times.ensemble_s += t.elapsed().as_secs_f64();
-        }
-        let tau = steps as u64;
-        let t_ens = Instant::now();
-        let (m, q) = match (oracle.as_mut(), ens.as_mut(), spec.execution) {
-            (Some(o), _, Execution::Ensemble(agg)) => {
-                let t = Instant::now();
-                let (m, q) = o.candidates(geometry, d, tau);
-                times.corruption_s += t.elapsed().as_secs_f64();
-                let c = Candidates::new(&o.values, d)?;
-                agg.aggregate(&c, &mut o.ws, &mut out)?;
-                if let Some(b) = diagnose(&c, &o.flags, &out) {
-                    let report = StepReport {
-                        tau,
-                        m,
-                        q,
-                        excluded: 0,
-                        excluded_corrupted: 0,
-                        regime: Regime::of(q, m),
-                        oldest_query: 0,
-                        newest_query: tau,
-                    };
-                    bracket.record(&report, &b);
-                }
-                (m, q)
-            }
-            (_, Some(e), _) => {
-                let s = e.action(tau)?;
-                out.copy_from_slice(s.action);
-                if let Some(b) = s.bracket {
-                    bracket.record(&s.report, &b);
-                }
-                (s.report.m, s.report.q)
-            }
-            _ => {
-                let r = t_o - 1 + k;
-                out.copy_from_slice(&chunk[r * d..(r + 1) * d]);
-                (1, usize::from(newest_flagged))
-            }
-        };
-        times.ensemble_s += t_ens.elapsed().as_secs_f64();
-        bump(&mut m_counts, m);
-        bump(&mut q_counts, q);
-        if let (Some(b), true) = (bias, newest_corrupted) {
-            for (x, bj) in out.iter_mut().zip(b) {
-                *x += bj;
-            }
-        }
-        let action = [f64::from(out[0]), f64::from(out[1])];
-        let t = Instant::now();
-        let info = env.step(action)?;
-        times.sim_s += t.elapsed().as_secs_f64();
-        steps += 1;
-        max_coverage = max_coverage.max(info.coverage);
-        if info.is_success {
-            success = true;
+        let event = ep.decide()?;
+        rec.on_step(&event);
+        observer.on_step(&event);
+        if ep.step()? {
             break;
         }
     }
-    times.total_s = t_start.elapsed().as_secs_f64();
+    ep.times.total_s = t_start.elapsed().as_secs_f64();
+    let ensembled = matches!(spec.execution, Execution::Ensemble(_));
     Ok(EpisodeRecord {
         cell: String::new(),
         arm: spec.execution.to_string(),
         seed: spec.seed,
-        success,
-        max_coverage,
-        steps,
-        queries,
-        corrupted_queries,
-        m_counts,
-        q_counts,
-        bracket: (!clean && matches!(spec.execution, Execution::Ensemble(_))).then_some(bracket),
-        times,
+        success: ep.success,
+        max_coverage: ep.max_coverage,
+        steps: ep.steps,
+        queries: rec.queries,
+        corrupted_queries: rec.corrupted_queries,
+        m_counts: rec.m_counts,
+        q_counts: rec.q_counts,
+        bracket: (!spec.corruption.is_clean() && ensembled).then_some(rec.bracket),
+        times: ep.times,
     })
+}
+
+impl<'p, 's> Episode<'p, 's> {
+    /// Checks the spec, resets the environment and builds the arm's executor.
+    fn new(policy: &'p dyn ChunkPolicy, spec: &'s EpisodeSpec<'s>) -> Result<Self, RolloutError> {
+        let (t_p, t_o, d) = (policy.horizon(), policy.n_obs_steps(), policy.action_dim());
+        let h = spec.h;
+        if h == 0 || h + t_o > t_p + 1 {
+            return Err(RolloutError::Config {
+                field: "h",
+                value: h.to_string(),
+                expected: format!("1..={} (T_p - T_o + 1)", t_p + 1 - t_o),
+            });
+        }
+        spec.corruption.validate()?;
+        let geometry = ChunkGeometry { t_p, t_o, h };
+        let clean = spec.corruption.is_clean();
+        let mut times = StageTimes::default();
+        let t = Instant::now();
+        let mut env = PushT::default();
+        env.reset(spec.seed, spec.stream)?;
+        times.sim_s += t.elapsed().as_secs_f64();
+        let candidate_fault = CandidateFault::new(spec, d, clean)?;
+        let executor = match spec.execution {
+            Execution::OpenLoop => Executor::OpenLoop,
+            Execution::Ensemble(a) => {
+                Executor::Ensemble(Box::new(TemporalEnsembler::with_options(
+                    geometry,
+                    d,
+                    a,
+                    EnsemblerOptions {
+                        lookahead: None,
+                        bracket_diagnostics: !clean,
+                    },
+                )?))
+            }
+        };
+        let corruptor = observation_corruptor(spec)?;
+        let keep = corruptor.frames_needed(t_o).max(t_o + 1);
+        Ok(Self {
+            policy,
+            spec,
+            geometry,
+            renderer: spec.needs.image.map(|_| Renderer::new(env.goal())),
+            max_coverage: env.coverage(),
+            env,
+            corruptor,
+            candidate_fault,
+            executor,
+            frames: Vec::with_capacity(keep + 1),
+            keep,
+            chunk: Vec::new(),
+            out: vec![0f32; d],
+            newest_corrupted: false,
+            newest_flag: [false],
+            steps: 0,
+            success: false,
+            times,
+        })
+    }
+
+    /// Stage *observe*: the current observation joins the history.
+    fn observe(&mut self) -> Result<(), RolloutError> {
+        let t = Instant::now();
+        let o = observe(&self.env, self.spec.needs, &mut self.renderer)?;
+        self.times.render_s += t.elapsed().as_secs_f64();
+        if self.frames.is_empty() {
+            self.frames = vec![o; self.keep];
+        } else {
+            self.frames.remove(0);
+            self.frames.push(o);
+        }
+        Ok(())
+    }
+
+    /// Stages *corrupt* and *query*: query `i = steps / h`, its chunk into the executor.
+    fn query(&mut self) -> Result<QueryEvent<'_>, RolloutError> {
+        let spec = self.spec;
+        let (steps, t_o) = (self.steps, self.geometry.t_o);
+        let i = (steps / spec.h) as u64;
+        let t = Instant::now();
+        let mut crng = query_rng(spec.noise_seed, spec.seed, i, 1);
+        let corrupted = !spec.corruption.is_clean()
+            && spec
+                .corruption
+                .schedule
+                .corrupts(i, steps as u64, self.geometry.m_min(), &mut crng);
+        let window =
+            self.corruptor
+                .window(&self.frames, t_o, corrupted, spec.needs.image, &mut crng);
+        self.times.corruption_s += t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let mut srng = query_rng(spec.noise_seed, spec.seed, i, 0);
+        self.chunk = match &spec.corruption.fault {
+            Fault::Pgd(cfg) if corrupted => {
+                let c = self
+                    .policy
+                    .predict_chunk_attacked(&window, cfg, &mut crng, &mut srng)?;
+                self.times.corruption_s += t.elapsed().as_secs_f64();
+                c
+            }
+            _ => {
+                let c = self.policy.predict_chunk(&window, &mut srng)?;
+                self.times.policy_s += t.elapsed().as_secs_f64();
+                c
+            }
+        };
+        self.newest_corrupted = corrupted;
+        self.newest_flag = [corrupted && self.candidate_fault.flags_corrupted()];
+        let t = Instant::now();
+        if let Executor::Ensemble(e) = &mut self.executor {
+            let meta = QueryMeta {
+                corrupted: self.newest_flag[0],
+            };
+            e.insert(steps as u64, &self.chunk, meta)?;
+        }
+        self.times.ensemble_s += t.elapsed().as_secs_f64();
+        Ok(QueryEvent {
+            index: i,
+            t: steps as u64,
+            chunk: &self.chunk,
+            corrupted,
+        })
+    }
+
+    /// Stages *ensemble* and *act*: the action of control time `steps`.
+    fn decide(&mut self) -> Result<StepEvent<'_>, RolloutError> {
+        let tau = self.steps as u64;
+        let d = self.out.len();
+        let t = Instant::now();
+        if let CandidateFault::CommonMode(s) = &mut self.candidate_fault {
+            s.on = self.newest_corrupted;
+        }
+        let event = match &mut self.executor {
+            Executor::Ensemble(e) => {
+                let s = e.action_with(tau, self.candidate_fault.hook())?;
+                self.out.copy_from_slice(s.action);
+                let (report, bracket) = (s.report, s.bracket);
+                let (candidates, corrupted) = e.last_candidates();
+                StepEvent {
+                    tau,
+                    candidates,
+                    corrupted,
+                    action: &self.out,
+                    m: report.m,
+                    q: report.q,
+                    report: Some(report),
+                    bracket,
+                }
+            }
+            Executor::OpenLoop => {
+                let r = self.geometry.t_o - 1 + self.steps % self.spec.h;
+                self.out.copy_from_slice(&self.chunk[r * d..(r + 1) * d]);
+                if let CandidateFault::CommonMode(s) = &self.candidate_fault
+                    && s.on
+                {
+                    for (x, b) in self.out.iter_mut().zip(s.bias) {
+                        *x += b;
+                    }
+                }
+                StepEvent {
+                    tau,
+                    candidates: Candidates::new(&self.chunk[r * d..(r + 1) * d], d)?,
+                    corrupted: &self.newest_flag,
+                    action: &self.out,
+                    m: 1,
+                    q: usize::from(self.newest_flag[0]),
+                    report: None,
+                    bracket: None,
+                }
+            }
+        };
+        self.times.ensemble_s += t.elapsed().as_secs_f64();
+        Ok(event)
+    }
+
+    /// Stage *step*: the environment executes the action; `true` when the episode is over.
+    fn step(&mut self) -> Result<bool, RolloutError> {
+        let action = [f64::from(self.out[0]), f64::from(self.out[1])];
+        let t = Instant::now();
+        let info = self.env.step(action)?;
+        self.times.sim_s += t.elapsed().as_secs_f64();
+        self.steps += 1;
+        self.max_coverage = self.max_coverage.max(info.coverage);
+        self.success = info.is_success;
+        Ok(info.is_success)
+    }
+}
+
+/// The arm's observation corruptor (a patch is loaded and checked against the frame here,
+/// not per frame).
+fn observation_corruptor(spec: &EpisodeSpec<'_>) -> Result<ObservationCorruptor, RolloutError> {
+    let fault = &spec.corruption.fault;
+    let Fault::Patch { path } = fault else {
+        return Ok(ObservationCorruptor::new(fault.clone()));
+    };
+    let Some((w, h)) = spec.needs.image else {
+        return Err(RolloutError::Config {
+            field: "fault",
+            value: fault.to_string(),
+            expected: "an image policy (a patch is drawn into camera frames)".into(),
+        });
+    };
+    let bad_path = |e: String| RolloutError::Config {
+        field: "fault.path",
+        value: path.display().to_string(),
+        expected: e,
+    };
+    let (_, patch) =
+        crate::patch_file::load(path).map_err(|e| bad_path(format!("a patch directory ({e})")))?;
+    patch.origin(w, h).map_err(|e| bad_path(e.to_string()))?;
+    Ok(ObservationCorruptor::with_patch(fault.clone(), patch))
 }

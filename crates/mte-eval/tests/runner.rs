@@ -430,3 +430,92 @@ fn tiny_diffusion_policy() -> Result<mte_policy::DiffusionPolicy, Box<dyn std::e
     );
     Ok(mte_policy::DiffusionPolicy::new(c, stats, vb)?)
 }
+
+/// Counts what an observer is told.
+#[derive(Default)]
+struct Watch {
+    queries: Vec<(u64, bool, usize)>,
+    steps: Vec<(u64, usize, usize, Vec<f32>, Vec<f32>)>,
+}
+
+impl mte_eval::episode::EpisodeObserver for Watch {
+    fn on_query(&mut self, e: &mte_eval::episode::QueryEvent<'_>) {
+        self.queries.push((e.t, e.corrupted, e.chunk.len()));
+    }
+    fn on_step(&mut self, e: &mte_eval::episode::StepEvent<'_>) {
+        assert_eq!(e.candidates.len(), e.corrupted.len());
+        let first: Vec<f32> = e.candidates.row(0).to_vec();
+        self.steps.push((e.tau, e.m, e.q, first, e.action.to_vec()));
+    }
+}
+
+#[test]
+fn observers_see_every_query_and_step_the_record_counts() -> TestResult {
+    let corruption = blank_burst(2);
+    for execution in [
+        Execution::OpenLoop,
+        Execution::Ensemble(mte_ensemble::Aggregator::MEDIAN),
+    ] {
+        let p = Scripted::new(400.0);
+        let mut w = Watch::default();
+        let s = spec(execution, &corruption, 2);
+        let r = mte_eval::pusht::run_episode_observed(&p, &s, &mut w)?;
+        assert_eq!(w.queries.len(), r.queries);
+        assert_eq!(
+            w.queries.iter().filter(|q| q.1).count(),
+            r.corrupted_queries
+        );
+        assert!(
+            w.queries
+                .iter()
+                .enumerate()
+                .all(|(i, q)| q.0 == 2 * i as u64 && q.2 == 32)
+        );
+        assert_eq!(w.steps.len(), r.steps);
+        let mut m_counts = vec![0u64; r.m_counts.len()];
+        for (k, st) in w.steps.iter().enumerate() {
+            assert_eq!(st.0, k as u64);
+            m_counts[st.1] += 1;
+        }
+        assert_eq!(m_counts, r.m_counts);
+        // The observed run is the unobserved run.
+        let again = run_episode(&Scripted::new(400.0), &s)?;
+        assert_eq!((again.max_coverage, again.steps), (r.max_coverage, r.steps));
+    }
+    Ok(())
+}
+
+/// Common-mode bias acts on the candidates: while the newest query is corrupted every
+/// candidate the median sees is shifted, so the median moves by the bias (and the
+/// candidates stay unflagged: no clean bracket exists).
+#[test]
+fn common_mode_bias_shifts_the_candidates_the_aggregator_sees() -> TestResult {
+    let shifted = CorruptionSpec {
+        fault: Fault::CommonMode {
+            magnitude: 64.0,
+            angle_deg: 0.0,
+        },
+        schedule: Schedule::Dense { start: 0, end: 1 },
+    };
+    let p = Scripted::new(400.0);
+    let mut w = Watch::default();
+    let median = Execution::Ensemble(mte_ensemble::Aggregator::MEDIAN);
+    let r = mte_eval::pusht::run_episode_observed(&p, &spec(median, &shifted, 2), &mut w)?;
+    let clean = CorruptionSpec::CLEAN;
+    let mut wc = Watch::default();
+    mte_eval::pusht::run_episode_observed(
+        &Scripted::new(400.0),
+        &spec(median, &clean, 2),
+        &mut wc,
+    )?;
+    // Query 0 (t = 0) is the only corrupted one; it is the newest at tau = 0 and 1.
+    assert_eq!(r.corrupted_queries, 1);
+    for tau in 0..2 {
+        let (b, c) = (&w.steps[tau], &wc.steps[tau]);
+        assert_eq!(b.3[0], c.3[0] + 64.0, "candidate at tau {tau}");
+        assert_eq!(b.3[1], c.3[1], "the bias is along +x");
+        assert_eq!(b.4[0], c.4[0] + 64.0, "action at tau {tau}");
+        assert_eq!(b.2, 0, "common-mode candidates are not flagged");
+    }
+    Ok(())
+}

@@ -431,11 +431,14 @@ fn tiny_diffusion_policy() -> Result<mte_policy::DiffusionPolicy, Box<dyn std::e
     Ok(mte_policy::DiffusionPolicy::new(c, stats, vb)?)
 }
 
+/// One observed step: tau, m, q, the first candidate, the action.
+type Seen = (u64, usize, usize, Vec<f32>, Vec<f32>);
+
 /// Counts what an observer is told.
 #[derive(Default)]
 struct Watch {
     queries: Vec<(u64, bool, usize)>,
-    steps: Vec<(u64, usize, usize, Vec<f32>, Vec<f32>)>,
+    steps: Vec<Seen>,
 }
 
 impl mte_eval::episode::EpisodeObserver for Watch {

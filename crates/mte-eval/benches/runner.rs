@@ -25,6 +25,12 @@ impl ChunkPolicy for Fixed {
     fn horizon(&self) -> usize {
         16
     }
+    fn needs(&self) -> ObsNeeds {
+        ObsNeeds {
+            env_state: true,
+            image: None,
+        }
+    }
     fn n_obs_steps(&self) -> usize {
         2
     }

@@ -73,26 +73,8 @@ impl FromStr for Execution {
     }
 }
 
-/// Which observations the policy reads.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct ObsNeeds {
-    /// The 16 keypoints.
-    pub env_state: bool,
-    /// Rendered frames of this (width, height).
-    pub image: Option<(usize, usize)>,
-}
-
-impl ObsNeeds {
-    /// What a Diffusion Policy with this configuration reads.
-    pub fn of(config: &mte_policy::DiffusionConfig) -> Self {
-        Self {
-            env_state: config
-                .vector_dim(mte_policy::config::FeatureType::Env)
-                .is_some(),
-            image: config.image_shape().map(|[_, h, w]| (w, h)),
-        }
-    }
-}
+/// Which observations the policy reads (moved to the policy seam).
+pub use mte_policy::ObsNeeds;
 
 /// Errors of a rollout.
 #[derive(Debug, thiserror::Error)]
@@ -570,8 +552,7 @@ impl<'p, 's> Episode<'p, 's> {
         let mut srng = query_rng(spec.noise_seed, spec.seed, i, 0);
         self.chunk = match &spec.corruption.fault {
             Fault::Pgd(cfg) if corrupted => {
-                let c = self
-                    .policy
+                let c = mte_policy::attackable(self.policy)?
                     .predict_chunk_attacked(&window, cfg, &mut crng, &mut srng)?;
                 self.times.corruption_s += t.elapsed().as_secs_f64();
                 c

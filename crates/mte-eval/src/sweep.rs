@@ -36,9 +36,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::Reporter;
 use crate::corruption::{CorruptionSpec, Fault, Schedule};
-use crate::pusht::{EpisodeSpec, Execution, ObsNeeds, run_episode};
+use crate::pusht::{EpisodeSpec, Execution, run_episode};
 use crate::record::{CellSpec, ErrorRecord, Line, Manifest, RUN_FORMAT};
 use crate::store::{CellWriter, RunDir, StoreError};
+use mte_policy::{ChunkPolicy, PolicyError};
 
 /// Episode seeds: a range or an explicit list.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -311,26 +312,17 @@ impl FromStr for Shard {
 
 /// A policy the runner can load by its spec string.
 pub trait PolicySource: Sync {
-    /// Loads (or returns a cached) policy and the observations it reads.
-    fn load(
-        &self,
-        path: &str,
-    ) -> Result<(Box<dyn mte_policy::ChunkPolicy + Send + Sync>, ObsNeeds), String>;
+    /// Loads (or returns a cached) policy.
+    fn load(&self, path: &str) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError>;
 }
 
-/// Loads Diffusion Policy checkpoints from directories (CPU).
+/// Loads checkpoint directories of any known policy type ([`mte_policy::load_policy`], CPU).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct CheckpointSource;
 
 impl PolicySource for CheckpointSource {
-    fn load(
-        &self,
-        path: &str,
-    ) -> Result<(Box<dyn mte_policy::ChunkPolicy + Send + Sync>, ObsNeeds), String> {
-        let p = mte_policy::checkpoint::load(Path::new(path), &candle_core::Device::Cpu)
-            .map_err(|e| format!("loading policy {path}: {e}"))?;
-        let needs = ObsNeeds::of(p.config());
-        Ok((Box::new(p), needs))
+    fn load(&self, path: &str) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError> {
+        mte_policy::load_policy(Path::new(path))
     }
 }
 
@@ -394,12 +386,14 @@ pub fn run(
     // Load each policy once; a failure fails its cells, not the sweep.
     let mut loaded: HashMap<&str, Result<_, String>> = HashMap::new();
     for c in &cells {
-        loaded
-            .entry(c.policy.as_str())
-            .or_insert_with(|| policies.load(&c.policy));
+        loaded.entry(c.policy.as_str()).or_insert_with(|| {
+            policies
+                .load(&c.policy)
+                .map_err(|e| format!("loading policy {}: {e}", c.policy))
+        });
     }
     for c in &cells {
-        if let Some(Ok((p, _))) = loaded.get(c.policy.as_str()) {
+        if let Some(Ok(p)) = loaded.get(c.policy.as_str()) {
             check_burst(c, p.horizon(), p.n_obs_steps())?;
         }
     }
@@ -423,8 +417,8 @@ pub fn run(
             .par_iter()
             .map(|(ci, seed, arms)| -> Result<usize, SweepError> {
                 let c = cells[*ci];
-                let (policy, needs) = match loaded.get(c.policy.as_str()) {
-                    Some(Ok((p, n))) => (p, *n),
+                let policy = match loaded.get(c.policy.as_str()) {
+                    Some(Ok(p)) => p,
                     Some(Err(e)) => {
                         for a in arms {
                             append(
@@ -445,7 +439,7 @@ pub fn run(
                 let mut ran = 0;
                 for &execution in arms {
                     let ep = EpisodeSpec {
-                        needs,
+                        needs: policy.needs(),
                         seed: *seed,
                         stream: spec.stream,
                         h: c.h,

@@ -36,6 +36,9 @@ impl ChunkPolicy for Scripted {
     fn horizon(&self) -> usize {
         16
     }
+    fn needs(&self) -> ObsNeeds {
+        NEEDS
+    }
     fn n_obs_steps(&self) -> usize {
         2
     }
@@ -247,11 +250,14 @@ fn bad_stride_is_a_typed_error() {
 struct Source;
 
 impl PolicySource for Source {
-    fn load(&self, path: &str) -> Result<(Box<dyn ChunkPolicy + Send + Sync>, ObsNeeds), String> {
+    fn load(&self, path: &str) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError> {
         if path == "missing" {
-            return Err("no such policy: missing".into());
+            return Err(PolicyError::Input {
+                name: "policy",
+                reason: "no such policy: missing".into(),
+            });
         }
-        Ok((Box::new(Scripted::new(5_000.0)), NEEDS))
+        Ok(Box::new(Scripted::new(5_000.0)))
     }
 }
 

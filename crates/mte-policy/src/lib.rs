@@ -10,6 +10,7 @@ pub mod kernels;
 pub mod model;
 pub mod normalize;
 pub mod patch;
+pub mod policy;
 pub mod pretrain;
 pub mod scheduler;
 pub mod train;
@@ -19,5 +20,8 @@ pub mod vision;
 pub use attack::{PgdConfig, PgdOutcome};
 pub use config::{DiffusionConfig, ObsKind};
 pub use error::PolicyError;
-pub use model::{ChunkPolicy, DiffusionPolicy, ObsBatch, ObsGradient, Observation, StatsMap};
+pub use model::{DiffusionPolicy, ObsBatch, ObsGradient, StatsMap};
 pub use normalize::{NormMode, Normalizer, Stats};
+pub use policy::{
+    AttackablePolicy, ChunkPolicy, ObsNeeds, Observation, POLICY_TYPES, attackable, load_policy,
+};

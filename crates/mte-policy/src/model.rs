@@ -12,20 +12,11 @@ use rand_distr::{Distribution, StandardNormal};
 use crate::config::{DiffusionConfig, FeatureType};
 use crate::error::{PolicyError, config_err};
 use crate::normalize::{NormMode, Normalizer, Stats};
+pub use crate::policy::Observation;
+use crate::policy::{AttackablePolicy, ChunkPolicy, ObsNeeds};
 use crate::scheduler::Scheduler;
 use crate::unet::ConditionalUnet1d;
 use crate::vision::RgbEncoder;
-
-/// One observation step, unnormalised, as the environment reports it.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Observation {
-    /// Robot state (PushT: agent position, px).
-    pub state: Vec<f32>,
-    /// Environment state (PushT: 16 keypoint coordinates, px), if the policy uses it.
-    pub env_state: Option<Vec<f32>>,
-    /// Camera frame, RGB u8 HWC, if the policy uses images.
-    pub image: Option<Vec<u8>>,
-}
 
 /// Normalised observation tensors of a batch: `state (B, T_o, S)`, `env (B, T_o, E)`,
 /// `image (B T_o, 3, H, W)` in [0, 1] (normalised inside, so gradients can be taken w.r.t.
@@ -551,38 +542,6 @@ pub struct ObsGradient {
     pub image: Option<Tensor>,
 }
 
-/// A chunked policy as the evaluation runner sees it: a history of `n_obs_steps`
-/// observations in, one chunk of `horizon x action_dim` actions out; randomness injected.
-pub trait ChunkPolicy {
-    /// Rows per chunk (T_p).
-    fn horizon(&self) -> usize;
-    /// Observations per query (T_o).
-    fn n_obs_steps(&self) -> usize;
-    /// Action dimension.
-    fn action_dim(&self) -> usize;
-    /// Predict a chunk (row-major, unnormalised; row `r` is for time `t - (T_o - 1) + r`).
-    fn predict_chunk(
-        &self,
-        history: &[Observation],
-        rng: &mut dyn RngCore,
-    ) -> Result<Vec<f32>, PolicyError>;
-    /// The chunk predicted from the observation after a PGD attack on the policy's own
-    /// loss ([`crate::attack`]): `attack_rng` drives the attack, `sample_rng` the sampling.
-    /// Policies without an observation gradient refuse.
-    fn predict_chunk_attacked(
-        &self,
-        _history: &[Observation],
-        _pgd: &crate::attack::PgdConfig,
-        _attack_rng: &mut dyn RngCore,
-        _sample_rng: &mut dyn RngCore,
-    ) -> Result<Vec<f32>, PolicyError> {
-        Err(PolicyError::Input {
-            name: "policy",
-            reason: "this policy offers no observation gradient, so PGD cannot attack it".into(),
-        })
-    }
-}
-
 impl ChunkPolicy for DiffusionPolicy {
     fn horizon(&self) -> usize {
         self.config.horizon
@@ -593,6 +552,12 @@ impl ChunkPolicy for DiffusionPolicy {
     fn action_dim(&self) -> usize {
         self.action_norm.dim()
     }
+    fn needs(&self) -> ObsNeeds {
+        ObsNeeds {
+            env_state: self.config.vector_dim(FeatureType::Env).is_some(),
+            image: self.config.image_shape().map(|[_, h, w]| (w, h)),
+        }
+    }
     fn predict_chunk(
         &self,
         history: &[Observation],
@@ -600,6 +565,12 @@ impl ChunkPolicy for DiffusionPolicy {
     ) -> Result<Vec<f32>, PolicyError> {
         self.predict(history, rng)
     }
+    fn attackable(&self) -> Option<&dyn AttackablePolicy> {
+        Some(self)
+    }
+}
+
+impl AttackablePolicy for DiffusionPolicy {
     fn predict_chunk_attacked(
         &self,
         history: &[Observation],

@@ -16,9 +16,10 @@ pub fn calibrate(cli: &Cli, a: &CalibrateArgs) -> Result<()> {
         .arm
         .parse()
         .with_context(|| format!("--arm {:?}: expected open-loop or an aggregator", a.arm))?;
-    let (policy, needs) = CheckpointSource
+    let policy = CheckpointSource
         .load(&a.policy.to_string_lossy())
-        .map_err(anyhow::Error::msg)?;
+        .with_context(|| format!("loading {}", a.policy.display()))?;
+    let needs = policy.needs();
     let spec = CalibrationSpec {
         arm,
         h: a.stride,

@@ -3,12 +3,9 @@
 use std::io::Write as _;
 
 use anyhow::{Context, Result, ensure};
-use candle_core::Device;
 use mte_eval::Reporter as _;
 use mte_eval::corruption::CorruptionSpec;
-use mte_eval::pusht::{EpisodeSpec, Execution, ObsNeeds, run_episode};
-use mte_policy::ChunkPolicy as _;
-use mte_policy::checkpoint;
+use mte_eval::pusht::{EpisodeSpec, Execution, run_episode};
 
 use crate::args::{Cli, EvalPolicyArgs, Format};
 use crate::progress::Bar;
@@ -22,9 +19,9 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
             a.execution
         )
     })?;
-    let p = checkpoint::load(&a.checkpoint, &Device::Cpu)
+    let p = mte_policy::load_policy(&a.checkpoint)
         .with_context(|| format!("loading {}", a.checkpoint.display()))?;
-    let needs = ObsNeeds::of(p.config());
+    let needs = p.needs();
     let bar = Bar::new(!cli.no_progress && !cli.quiet);
     bar.start("episodes", a.episodes as u64);
     let t0 = std::time::Instant::now();
@@ -41,7 +38,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
             corruption: &CorruptionSpec::CLEAN,
             noise_seed: a.noise_seed,
         };
-        out.push(run_episode(&p, &spec)?);
+        out.push(run_episode(p.as_ref(), &spec)?);
         bar.advance(1);
     }
     bar.finish();
@@ -54,7 +51,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
         Format::Json => writeln!(
             so,
             "{}",
-            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon()})
+            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "machine": mte_eval::machine::Machine::detect()})
         )?,
         Format::Text => writeln!(
             so,

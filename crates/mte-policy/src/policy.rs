@@ -1,0 +1,153 @@
+//! The policy seam, free of any tensor type: what an evaluation runner, a controller or a
+//! bridge needs of a chunked policy, whatever network (Diffusion Policy, ACT, a script)
+//! is behind it.
+//!
+//! - [`Observation`]: one observation step as the environment reports it.
+//! - [`ObsNeeds`]: which observations the policy reads, so an environment renders only those.
+//! - [`ChunkPolicy`]: a history of `T_o` observations in, one `T_p x d` chunk out, randomness
+//!   injected.
+//! - [`AttackablePolicy`]: the gradient access that PGD needs, offered separately
+//!   ([`ChunkPolicy::attackable`]); policies without an observation gradient refuse attacks
+//!   with a typed error instead of implementing a stub.
+//! - [`load_policy`]: a checkpoint directory to a policy, dispatching on `config.json`'s
+//!   `type` ([`POLICY_TYPES`] lists the known ones).
+//!
+//! Conventions: actions and observations unnormalised, in the environment's units (PushT:
+//! pixels of the 512 x 512 workspace); row `r` of the chunk from the query at control time
+//! `t` is the action for `t - (T_o - 1) + r`.
+
+use std::path::Path;
+
+use rand::RngCore;
+
+use crate::attack::PgdConfig;
+use crate::error::{PolicyError, config_err};
+
+/// One observation step, unnormalised, as the environment reports it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Observation {
+    /// Robot state (PushT: agent position, px).
+    pub state: Vec<f32>,
+    /// Environment state (PushT: 16 keypoint coordinates, px), if the policy uses it.
+    pub env_state: Option<Vec<f32>>,
+    /// Camera frame, RGB u8 HWC, if the policy uses images.
+    pub image: Option<Vec<u8>>,
+}
+
+/// Which observations a policy reads (the robot state always).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ObsNeeds {
+    /// The environment state vector (PushT: the 16 keypoints).
+    pub env_state: bool,
+    /// Rendered frames of this (width, height), px.
+    pub image: Option<(usize, usize)>,
+}
+
+/// A chunked policy as a runner sees it: a history of `n_obs_steps` observations in, one
+/// chunk of `horizon x action_dim` actions out; randomness injected.
+pub trait ChunkPolicy {
+    /// Rows per chunk (T_p).
+    fn horizon(&self) -> usize;
+    /// Observations per query (T_o).
+    fn n_obs_steps(&self) -> usize;
+    /// Action dimension.
+    fn action_dim(&self) -> usize;
+    /// The observations the policy reads.
+    fn needs(&self) -> ObsNeeds;
+    /// Predict a chunk (row-major, unnormalised; row `r` is for time `t - (T_o - 1) + r`).
+    fn predict_chunk(
+        &self,
+        history: &[Observation],
+        rng: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError>;
+    /// The policy's gradient access for attacks, if it has one.
+    fn attackable(&self) -> Option<&dyn AttackablePolicy> {
+        None
+    }
+}
+
+/// A policy whose observation can be attacked through its own loss's gradient.
+pub trait AttackablePolicy {
+    /// The chunk predicted from the observation after a PGD attack on the policy's own
+    /// loss ([`crate::attack`]): `attack_rng` drives the attack, `sample_rng` the sampling.
+    fn predict_chunk_attacked(
+        &self,
+        history: &[Observation],
+        pgd: &PgdConfig,
+        attack_rng: &mut dyn RngCore,
+        sample_rng: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError>;
+}
+
+/// `policy`'s attack access, or the typed refusal for a policy without a gradient.
+pub fn attackable(policy: &dyn ChunkPolicy) -> Result<&dyn AttackablePolicy, PolicyError> {
+    policy.attackable().ok_or_else(|| PolicyError::Input {
+        name: "policy",
+        reason: "this policy offers no observation gradient, so PGD cannot attack it".into(),
+    })
+}
+
+/// The policy types [`load_policy`] knows, as `config.json` spells them.
+pub const POLICY_TYPES: &[&str] = &["diffusion"];
+
+/// Loads the policy in checkpoint directory `dir` (LeRobot's layout: `config.json` with its
+/// `type`, weights, processor files) on the CPU.
+///
+/// # Errors
+/// [`PolicyError::Io`] or [`PolicyError::Checkpoint`] for a missing or malformed
+/// `config.json`, [`PolicyError::Config`] naming the known types for an unknown `type`, and
+/// the policy's own load errors.
+pub fn load_policy(dir: &Path) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError> {
+    let path = dir.join("config.json");
+    let text = std::fs::read_to_string(&path).map_err(|source| PolicyError::Io {
+        path: path.clone(),
+        source,
+    })?;
+    let value: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| PolicyError::Checkpoint {
+            path: path.clone(),
+            reason: format!("not JSON: {e}"),
+        })?;
+    let kind = value.get("type").and_then(|t| t.as_str()).unwrap_or("");
+    match kind {
+        "diffusion" => Ok(Box::new(crate::checkpoint::load(
+            dir,
+            &candle_core::Device::Cpu,
+        )?)),
+        other => Err(config_err(
+            "type",
+            other,
+            format!("one of the known policy types: {}", POLICY_TYPES.join(", ")),
+        )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_and_missing_types_name_the_known_ones() {
+        let dir = tempfile::tempdir().expect("tmp");
+        std::fs::write(dir.path().join("config.json"), r#"{"type": "act"}"#).expect("write");
+        let e = load_policy(dir.path())
+            .err()
+            .expect("unknown type")
+            .to_string();
+        assert!(
+            e.contains("`type` = \"act\"") && e.contains("diffusion"),
+            "{e}"
+        );
+        std::fs::write(dir.path().join("config.json"), "{}").expect("write");
+        let e = load_policy(dir.path()).err().expect("no type").to_string();
+        assert!(e.contains("known policy types"), "{e}");
+        std::fs::write(dir.path().join("config.json"), "{").expect("write");
+        let e = load_policy(dir.path()).err().expect("not json").to_string();
+        assert!(e.contains("not JSON"), "{e}");
+        let e = load_policy(&dir.path().join("missing"))
+            .err()
+            .expect("no dir")
+            .to_string();
+        assert!(e.contains("config.json"), "{e}");
+    }
+}

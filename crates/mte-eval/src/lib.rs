@@ -16,6 +16,7 @@
 
 pub mod calibrate;
 pub mod corruption;
+pub mod environment;
 pub mod episode;
 pub mod machine;
 pub mod patch_file;

@@ -34,12 +34,12 @@ use mte_ensemble::{
     EnsembleError, EnsemblerOptions, QueryMeta, TemporalEnsembler,
 };
 use mte_policy::{ChunkPolicy, Observation, PolicyError};
-use mte_sim::render::Renderer;
-use mte_sim::{PushT, ResetStream, SimError};
+use mte_sim::{ResetStream, SimError};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::corruption::{CorruptionSpec, Fault, ObservationCorruptor, OracleMode};
+use crate::environment::{Environment, PushTEnv};
 use crate::episode::{EpisodeObserver, NoObserver, QueryEvent, StepEvent};
 use crate::record::{EpisodeRecord, StageTimes};
 
@@ -97,6 +97,9 @@ pub enum RolloutError {
     /// A corruption parameter was out of range.
     #[error(transparent)]
     Corruption(#[from] crate::corruption::CorruptionError),
+    /// The environment failed.
+    #[error(transparent)]
+    Env(#[from] crate::environment::EnvError),
     /// A bad setting.
     #[error("`{field}` = {value}: expected {expected}")]
     Config {
@@ -144,29 +147,6 @@ pub fn query_rng(noise_seed: u64, seed: u64, i: u64, purpose: u64) -> ChaCha8Rng
     let mut r = ChaCha8Rng::seed_from_u64(mix(mix(noise_seed) ^ mix(seed).rotate_left(21) ^ i));
     r.set_stream(purpose);
     r
-}
-
-fn observe(
-    env: &PushT,
-    needs: ObsNeeds,
-    renderer: &mut Option<Renderer>,
-) -> Result<Observation, RolloutError> {
-    let a = env.agent_pos();
-    let image = match (needs.image, renderer.as_mut()) {
-        (Some((w, h)), Some(r)) => {
-            let mut px = vec![0u8; w * h * 3];
-            r.observation_with_contacts_into(&env.scene(), env.contact_segments(), w, h, &mut px)?;
-            Some(px)
-        }
-        _ => None,
-    };
-    Ok(Observation {
-        state: vec![a[0] as f32, a[1] as f32],
-        env_state: needs
-            .env_state
-            .then(|| env.keypoints().iter().map(|&v| v as f32).collect()),
-        image,
-    })
 }
 
 /// A fault that rewrites the candidates of the real ensembler through its candidate hook.
@@ -386,12 +366,11 @@ enum Executor {
 }
 
 /// One episode of one arm, between stages.
-struct Episode<'p, 's> {
+struct Episode<'e, 'p, 's> {
     policy: &'p dyn ChunkPolicy,
     spec: &'s EpisodeSpec<'s>,
     geometry: ChunkGeometry,
-    env: PushT,
-    renderer: Option<Renderer>,
+    env: &'e mut dyn Environment,
     corruptor: ObservationCorruptor,
     candidate_fault: CandidateFault,
     executor: Executor,
@@ -424,8 +403,20 @@ pub fn run_episode_observed(
     spec: &EpisodeSpec<'_>,
     observer: &mut dyn EpisodeObserver,
 ) -> Result<EpisodeRecord, RolloutError> {
+    let mut env = PushTEnv::new(spec.stream);
+    run_episode_in(&mut env, policy, spec, observer)
+}
+
+/// One episode of one arm in any [`Environment`] (reset here from `spec.seed`; `spec.stream`
+/// is PushT's and unused by other environments).
+pub fn run_episode_in(
+    env: &mut dyn Environment,
+    policy: &dyn ChunkPolicy,
+    spec: &EpisodeSpec<'_>,
+    observer: &mut dyn EpisodeObserver,
+) -> Result<EpisodeRecord, RolloutError> {
     let t_start = Instant::now();
-    let mut ep = Episode::new(policy, spec)?;
+    let mut ep = Episode::new(env, policy, spec)?;
     let mut rec = Recorder::default();
     while ep.steps < spec.max_steps {
         ep.observe()?;
@@ -459,9 +450,13 @@ pub fn run_episode_observed(
     })
 }
 
-impl<'p, 's> Episode<'p, 's> {
+impl<'e, 'p, 's> Episode<'e, 'p, 's> {
     /// Checks the spec, resets the environment and builds the arm's executor.
-    fn new(policy: &'p dyn ChunkPolicy, spec: &'s EpisodeSpec<'s>) -> Result<Self, RolloutError> {
+    fn new(
+        env: &'e mut dyn Environment,
+        policy: &'p dyn ChunkPolicy,
+        spec: &'s EpisodeSpec<'s>,
+    ) -> Result<Self, RolloutError> {
         let (t_p, t_o, d) = (policy.horizon(), policy.n_obs_steps(), policy.action_dim());
         let h = spec.h;
         if h == 0 || h + t_o > t_p + 1 {
@@ -475,9 +470,15 @@ impl<'p, 's> Episode<'p, 's> {
         let geometry = ChunkGeometry { t_p, t_o, h };
         let clean = spec.corruption.is_clean();
         let mut times = StageTimes::default();
+        if env.action_dim() != d {
+            return Err(RolloutError::Config {
+                field: "policy",
+                value: format!("action dimension {d}"),
+                expected: format!("the environment's action dimension {}", env.action_dim()),
+            });
+        }
         let t = Instant::now();
-        let mut env = PushT::default();
-        env.reset(spec.seed, spec.stream)?;
+        let score = env.reset(spec.seed)?;
         times.sim_s += t.elapsed().as_secs_f64();
         let candidate_fault = CandidateFault::new(spec, d, clean)?;
         let executor = match spec.execution {
@@ -500,8 +501,7 @@ impl<'p, 's> Episode<'p, 's> {
             policy,
             spec,
             geometry,
-            renderer: spec.needs.image.map(|_| Renderer::new(env.goal())),
-            max_coverage: env.coverage(),
+            max_coverage: score,
             env,
             corruptor,
             candidate_fault,
@@ -521,7 +521,7 @@ impl<'p, 's> Episode<'p, 's> {
     /// Stage *observe*: the current observation joins the history.
     fn observe(&mut self) -> Result<(), RolloutError> {
         let t = Instant::now();
-        let o = observe(&self.env, self.spec.needs, &mut self.renderer)?;
+        let o = self.env.observe(self.spec.needs)?;
         self.times.render_s += t.elapsed().as_secs_f64();
         if self.frames.is_empty() {
             self.frames = vec![o; self.keep];
@@ -634,14 +634,13 @@ impl<'p, 's> Episode<'p, 's> {
 
     /// Stage *step*: the environment executes the action; `true` when the episode is over.
     fn step(&mut self) -> Result<bool, RolloutError> {
-        let action = [f64::from(self.out[0]), f64::from(self.out[1])];
         let t = Instant::now();
-        let info = self.env.step(action)?;
+        let outcome = self.env.step(&self.out)?;
         self.times.sim_s += t.elapsed().as_secs_f64();
         self.steps += 1;
-        self.max_coverage = self.max_coverage.max(info.coverage);
-        self.success = info.is_success;
-        Ok(info.is_success)
+        self.max_coverage = self.max_coverage.max(outcome.score);
+        self.success = outcome.success;
+        Ok(outcome.success)
     }
 }
 

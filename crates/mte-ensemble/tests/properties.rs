@@ -273,3 +273,60 @@ fn a_hook_that_leaves_a_nan_is_an_error() {
     // The stored chunk is untouched: the next time sees the clean value.
     assert_eq!(ens.action(1).unwrap().action, &[1.0, 1.0]);
 }
+
+/// The bracket guarantee on 10^5 random cases (a seeded xorshift, so the test is fast and
+/// reproducible): `M` from 1 to 24, `d` from 1 to 4, `q < M / 2` corrupted candidates with
+/// extreme values interleaved at random; every median tie rule stays in the clean bracket.
+#[test]
+fn the_bracket_guarantee_holds_on_100k_random_cases() {
+    let mut s = 0x9E37_79B9_7F4A_7C15u64;
+    let mut next = move || {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        s
+    };
+    let mut ws = Workspace::new(24, 4);
+    let mut out = [0f32; 4];
+    let (mut rows, mut flags) = (Vec::new(), Vec::new());
+    for case in 0..100_000u32 {
+        let m = 1 + (next() % 24) as usize;
+        let d = 1 + (next() % 4) as usize;
+        let q = if m > 1 {
+            (next() as usize) % m.div_ceil(2)
+        } else {
+            0
+        };
+        let q = q.min((m - 1) / 2);
+        rows.clear();
+        flags.clear();
+        flags.resize(m, false);
+        for _ in 0..m * d {
+            rows.push((next() % 2001) as f32 - 1000.0);
+        }
+        // Corrupt q distinct candidates with extreme values.
+        let mut placed = 0;
+        while placed < q {
+            let i = (next() % m as u64) as usize;
+            if !flags[i] {
+                flags[i] = true;
+                placed += 1;
+                for j in 0..d {
+                    rows[i * d + j] = if next() % 2 == 0 { 1e30 } else { -1e30 };
+                }
+            }
+        }
+        let c = Candidates::new(&rows, d).unwrap();
+        for tie in TIES {
+            Aggregator::Median { tie }
+                .aggregate(&c, &mut ws, &mut out[..d])
+                .unwrap();
+            if let Some(b) = bracket::diagnose(&c, &flags, &out[..d]) {
+                assert!(
+                    !b.outside,
+                    "case {case}: {tie:?}, M {m}, q {q}, d {d}: {b:?}"
+                );
+            }
+        }
+    }
+}

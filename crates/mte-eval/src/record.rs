@@ -114,6 +114,57 @@ pub struct EpisodeRecord {
     pub times: StageTimes,
 }
 
+/// The most control steps an episode record may claim: 10^9 (gym-pusht's limit is 300), so
+/// that sums over a run cannot overflow.
+pub const MAX_RECORD_STEPS: usize = 1_000_000_000;
+
+impl EpisodeRecord {
+    /// Checks the record's counts against each other (a hand-edited or corrupted file is
+    /// refused here, not turned into overflowing or meaningless tables): `steps` at most
+    /// [`MAX_RECORD_STEPS`]; `m_counts` and `q_counts` each sum to `steps`; at most `steps`
+    /// queries, of which at most all corrupted; coverage in `[0, 1]`; bracket tallies within
+    /// `steps`. Returns what is wrong.
+    pub fn check(&self) -> Result<(), String> {
+        let steps = self.steps;
+        if steps > MAX_RECORD_STEPS {
+            return Err(format!(
+                "steps = {steps}: expected at most {MAX_RECORD_STEPS}"
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.max_coverage) {
+            return Err(format!(
+                "max_coverage = {}: expected a value in [0, 1]",
+                self.max_coverage
+            ));
+        }
+        for (name, counts) in [("m_counts", &self.m_counts), ("q_counts", &self.q_counts)] {
+            let total: u128 = counts.iter().map(|&c| u128::from(c)).sum();
+            if total != steps as u128 {
+                return Err(format!("{name} sum to {total}: expected steps = {steps}"));
+            }
+        }
+        if self.queries > steps.max(1) || self.corrupted_queries > self.queries {
+            return Err(format!(
+                "{} queries ({} corrupted) in {steps} steps: expected at most one query per step \
+                 and at most every query corrupted",
+                self.queries, self.corrupted_queries
+            ));
+        }
+        if let Some(b) = &self.bracket {
+            let total: u128 = b.tallies.iter().map(|t| u128::from(t.steps)).sum();
+            let bad = b.tallies.iter().any(|t| {
+                t.outside > t.steps || t.zero_width_outside > t.steps || t.coincide > t.steps
+            });
+            if total > steps as u128 || bad {
+                return Err(format!(
+                    "bracket tallies ({total} steps) exceed the record's {steps} steps or their own"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// A cell (or one episode of it) that failed; the sweep records it and goes on.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ErrorRecord {

@@ -139,6 +139,18 @@ pub enum ReportError {
         /// The value.
         value: f64,
     },
+    /// An episode record's counts contradict each other.
+    #[error("episode record of cell `{cell}`, arm `{arm}`, seed {seed}: {reason}")]
+    InconsistentRecord {
+        /// Cell id.
+        cell: String,
+        /// Arm.
+        arm: String,
+        /// Seed.
+        seed: u64,
+        /// What is wrong.
+        reason: String,
+    },
     /// A statistic failed on input that should have been valid.
     #[error("{what}: {source}")]
     Stats {
@@ -645,6 +657,13 @@ pub fn build(
                         value: r.max_coverage,
                     });
                 }
+                r.check()
+                    .map_err(|reason| ReportError::InconsistentRecord {
+                        cell: r.cell.clone(),
+                        arm: r.arm.clone(),
+                        seed: r.seed,
+                        reason,
+                    })?;
                 if cells[ci].add(r) {
                     episodes += 1;
                 } else {

@@ -56,8 +56,33 @@ pub enum Seeds {
     List(Vec<u64>),
 }
 
+/// The most episode seeds one cell may list: 10^6, far beyond any protocol (the paper's is
+/// 50 per cell), so that a mistyped `count` is an error, not an allocation that aborts.
+pub const MAX_SEEDS: usize = 1_000_000;
+
 impl Seeds {
-    /// The seeds in order.
+    /// Checks the count (1..=[`MAX_SEEDS`]) and that a range does not pass `u64::MAX`.
+    pub fn validate(&self) -> Result<(), SweepError> {
+        let n = match self {
+            Self::Range { count, .. } => *count,
+            Self::List(v) => v.len(),
+        };
+        if n == 0 || n > MAX_SEEDS {
+            return Err(field("seeds", n, format!("1..={MAX_SEEDS} seeds")));
+        }
+        if let Self::Range { first, count } = *self
+            && first.checked_add(count as u64 - 1).is_none()
+        {
+            return Err(field(
+                "seeds",
+                format!("{{ first = {first}, count = {count} }}"),
+                "a range that ends at or below 2^64 - 1",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The seeds in order (call [`Seeds::validate`] first).
     pub fn to_vec(&self) -> Vec<u64> {
         match self {
             Self::Range { first, count } => (0..*count as u64).map(|i| first + i).collect(),
@@ -171,9 +196,7 @@ impl SweepSpec {
         if self.h.is_empty() || self.h.contains(&0) {
             return Err(field("h", format!("{:?}", self.h), "strides >= 1"));
         }
-        if self.seeds.to_vec().is_empty() {
-            return Err(field("seeds", "none", "at least one seed"));
-        }
+        self.seeds.validate()?;
         if self.max_steps == 0 {
             return Err(field("max_steps", 0, "at least 1"));
         }

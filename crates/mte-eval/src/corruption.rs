@@ -174,19 +174,43 @@ pub enum Fault {
     },
 }
 
+/// Where in an episode a fault acts (`crate::episode` names the stages). Every fault has
+/// exactly one site, given by an exhaustive match in [`Fault::site`], so a new fault
+/// cannot be added without saying where it acts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FaultSite {
+    /// Nowhere (the clean cell).
+    Nowhere,
+    /// The observation window of a corrupted query (stage *corrupt*): sensor faults and the
+    /// physical patch.
+    Observation,
+    /// The query itself, through the policy's gradient (stage *query*): PGD.
+    Query,
+    /// The candidates of the ensembler (stage *ensemble*): oracle attacks and common-mode
+    /// bias.
+    Candidates,
+}
+
 impl Fault {
-    /// Whether the fault acts on observations (else on candidates, or not at all).
-    pub fn is_observation(&self) -> bool {
-        matches!(
-            self,
+    /// Where the fault acts.
+    pub fn site(&self) -> FaultSite {
+        match self {
+            Self::None => FaultSite::Nowhere,
             Self::Blank
-                | Self::Stale
-                | Self::Frozen
-                | Self::Occluder { .. }
-                | Self::MotionBlur { .. }
-                | Self::GaussianNoise { .. }
-                | Self::Patch { .. }
-        )
+            | Self::Stale
+            | Self::Frozen
+            | Self::Occluder { .. }
+            | Self::MotionBlur { .. }
+            | Self::GaussianNoise { .. }
+            | Self::Patch { .. } => FaultSite::Observation,
+            Self::Pgd(_) => FaultSite::Query,
+            Self::CommonMode { .. } | Self::Oracle { .. } => FaultSite::Candidates,
+        }
+    }
+
+    /// Whether the fault acts on observations (else on candidates, the query, or not at all).
+    pub fn is_observation(&self) -> bool {
+        self.site() == FaultSite::Observation
     }
 
     /// Strength on the fault's natural axis, for plots against attack budget.

@@ -18,6 +18,7 @@ pub mod calibrate;
 pub mod corruption;
 pub mod environment;
 pub mod episode;
+mod label;
 pub mod machine;
 pub mod patch_file;
 pub mod pusht;

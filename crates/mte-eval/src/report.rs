@@ -37,6 +37,7 @@ use mte_stats::{
 };
 use serde::Serialize;
 
+use crate::label::{policy_label, slug};
 use crate::record::{CellSpec, EpisodeRecord, ErrorRecord, Line, Manifest, StageTimes};
 
 mod defence;
@@ -571,35 +572,12 @@ fn success_count(eps: &[&EpisodeRecord]) -> usize {
     eps.iter().filter(|r| r.success).count()
 }
 
-/// The last path component of a policy, for titles and file names.
-fn policy_label(policy: &str) -> &str {
-    policy
-        .trim_end_matches(['/', '\\'])
-        .rsplit(['/', '\\'])
-        .next()
-        .filter(|s| !s.is_empty())
-        .unwrap_or(policy)
-}
-
 /// The serde `kind` tag of a tagged enum value (`blank`, `burst`, ...).
 fn kind_tag<T: Serialize>(v: &T) -> String {
     serde_json::to_value(v)
         .ok()
         .and_then(|j| j.get("kind").and_then(|k| k.as_str()).map(str::to_string))
         .unwrap_or_default()
-}
-
-/// A file-name-safe version of `s`.
-fn slug(s: &str) -> String {
-    s.chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_') {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect()
 }
 
 /// `base`, or `base-2`, `base-3`, ... if taken.
@@ -1376,8 +1354,24 @@ fn machine_line(machines: &[String]) -> String {
 }
 
 impl Report {
+    /// The report as blocks: the header, then one section per function, in order.
     fn blocks(&self) -> Vec<Block> {
         let mut b = Vec::new();
+        self.header(&mut b);
+        self.main_table(&mut b);
+        self.aggregators(&mut b);
+        self.bracket(&mut b);
+        self.recovered(&mut b);
+        self.coverage_counts(&mut b);
+        self.overhead(&mut b);
+        self.failures(&mut b);
+        self.plots_section(&mut b);
+        self.defence_section(&mut b);
+        b
+    }
+
+    /// The title and the run's metadata.
+    fn header(&self, b: &mut Vec<Block>) {
         let m = &self.manifest;
         b.push(Block::Title(format!("Evaluation report: {}", self.name)));
         let mut meta = vec![
@@ -1407,8 +1401,10 @@ impl Report {
         ];
         meta.extend(self.notes.iter().cloned());
         b.push(Block::Bullets(meta));
+    }
 
-        // 1.
+    /// Section 1: the main table.
+    fn main_table(&self, b: &mut Vec<Block>) {
         b.push(Block::Heading(format!(
             "1. Main table: {} against {}",
             code(&self.robust),
@@ -1483,8 +1479,10 @@ impl Report {
                 rows,
             ));
         }
+    }
 
-        // 2.
+    /// Section 2: the aggregators on the focus cell.
+    fn aggregators(&self, b: &mut Vec<Block>) {
         let f = &self.focus;
         b.push(Block::Heading(format!(
             "2. Aggregators on {} ({})",
@@ -1540,8 +1538,10 @@ impl Report {
             ],
             rows,
         ));
+    }
 
-        // 3.
+    /// Section 3: bracket diagnostics by regime.
+    fn bracket(&self, b: &mut Vec<Block>) {
         b.push(Block::Heading("3. Bracket diagnostics by regime".into()));
         b.push(Block::Para(
             "Control steps with at least one corrupted candidate, over the corrupted cells, \
@@ -1602,8 +1602,10 @@ impl Report {
                 rows,
             ));
         }
+    }
 
-        // 4.
+    /// Section 4: the recovered fraction.
+    fn recovered(&self, b: &mut Vec<Block>) {
         b.push(Block::Heading("4. Recovered fraction".into()));
         b.push(Block::Para(format!(
             "(robust − baseline) / (clean − baseline) on mean max coverage and on success rate: \
@@ -1650,8 +1652,10 @@ impl Report {
         if !reasons.is_empty() {
             b.push(Block::Bullets(reasons));
         }
+    }
 
-        // 5.
+    /// Section 5: the distribution of M(τ) and q(τ).
+    fn coverage_counts(&self, b: &mut Vec<Block>) {
         b.push(Block::Heading("5. Distribution of M(τ) and q(τ)".into()));
         b.push(Block::Para(
             "Share of control steps (%) by the number of covering chunks M and by the measured \
@@ -1704,8 +1708,10 @@ impl Report {
                 b.push(Block::Table { head, rows });
             }
         }
+    }
 
-        // 6.
+    /// Section 6: runner overhead.
+    fn overhead(&self, b: &mut Vec<Block>) {
         b.push(Block::Heading("6. Runner overhead".into()));
         b.push(Block::Para(
             "Share of the total wall time by stage (%), over all cells; runner = total − policy \
@@ -1757,8 +1763,10 @@ impl Report {
             ],
             rows,
         ));
+    }
 
-        // 7.
+    /// Section 7: failures.
+    fn failures(&self, b: &mut Vec<Block>) {
         b.push(Block::Heading("7. Failures".into()));
         if self.failures.is_empty() {
             b.push(Block::Para("None.".into()));
@@ -1777,20 +1785,23 @@ impl Report {
                 .collect();
             b.push(table(&["cell", "arm", "seed", "error"], rows));
         }
+    }
 
-        // 8.
+    /// Section 8: plots.
+    fn plots_section(&self, b: &mut Vec<Block>) {
         b.push(Block::Heading("8. Plots".into()));
         if self.plots.is_empty() {
             b.push(Block::Para("No plot (no corrupted cell).".into()));
         } else {
             b.push(Block::Plots);
         }
+    }
 
-        // 9.
+    /// Section 9 (when asked for): the defence table.
+    fn defence_section(&self, b: &mut Vec<Block>) {
         if let Some(t) = &self.defence {
             b.extend(t.blocks());
         }
-        b
     }
 
     /// The report as GitHub-flavoured Markdown (plots linked as `plots/<name>.svg`).

@@ -36,6 +36,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::Reporter;
 use crate::corruption::{CorruptionSpec, Fault, Schedule};
+use crate::label::{policy_label, slug};
 use crate::pusht::{EpisodeSpec, Execution, run_episode};
 use crate::record::{CellSpec, ErrorRecord, Line, Manifest, RUN_FORMAT};
 use crate::store::{CellWriter, RunDir, StoreError};
@@ -223,10 +224,10 @@ impl SweepSpec {
         let seeds = self.seeds.to_vec();
         let mut cells: Vec<CellSpec> = Vec::new();
         for p in &self.policies {
-            let label = policy_label(p);
+            let label = policy_label(p).to_string();
             for &h in &self.h {
                 let mut push = |corruption: CorruptionSpec| {
-                    let id = sanitize(&format!("{label}-{corruption}-h{h}"));
+                    let id = slug(&format!("{label}-{corruption}-h{h}"));
                     if !cells.iter().any(|c| c.id == id) {
                         cells.push(CellSpec {
                             id,
@@ -279,26 +280,6 @@ impl SweepSpec {
             machines: vec![crate::machine::Machine::detect()],
         }
     }
-}
-
-/// The last path component, as a short label.
-fn policy_label(p: &str) -> String {
-    Path::new(p)
-        .file_name()
-        .map_or_else(|| p.to_string(), |s| s.to_string_lossy().into_owned())
-}
-
-/// Keeps `[A-Za-z0-9._-]`, maps the rest to `_`.
-fn sanitize(s: &str) -> String {
-    s.chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect()
 }
 
 /// Which part of the grid this process runs: cells `index, index + count, ...`.

@@ -101,7 +101,7 @@ pub struct EvalPolicyArgs {
     #[arg(long, default_value_t = 8, value_parser = at_least_one)]
     pub stride: usize,
     /// `open-loop`, or an aggregator text form (e.g. `ewm:0.01`, `median`).
-    #[arg(long, default_value = "ewm:0.01")]
+    #[arg(long, default_value = "ewm:0.01", value_parser = arm)]
     pub execution: String,
     /// Step limit per episode.
     #[arg(long, default_value_t = 300, value_parser = at_least_one)]
@@ -432,12 +432,12 @@ pub struct DemoArgs {
     #[arg(long, value_name = "DIR")]
     pub policy: Option<PathBuf>,
     /// Arms compared on the same episodes (comma-separated; the first is the baseline).
-    #[arg(long, value_delimiter = ',', default_value = "ewm:0.01,median")]
+    #[arg(long, value_delimiter = ',', default_value = "ewm:0.01,median", value_parser = arm)]
     pub aggregators: Vec<String>,
     /// Corruption at struck queries, as TOML inline table fields, e.g. `kind = "blank"`,
     /// `kind = "occluder", size = 24`, `kind = "gaussian-noise", sigma = 20.0`.
-    #[arg(long, default_value = r#"kind = "blank""#)]
-    pub fault: String,
+    #[arg(long, default_value = r#"kind = "blank""#, value_parser = fault)]
+    pub fault: mte_eval::corruption::Fault,
     /// Burst lengths q (corrupted queries per period of M_min); 0 is the clean cell.
     #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
     pub q: Vec<usize>,
@@ -465,7 +465,7 @@ pub struct SweepArgs {
     pub resume: bool,
     /// Run only shard `i/n` of the cells (e.g. a Slurm array index); shards may share `--out`.
     #[arg(long, default_value = "0/1")]
-    pub shard: String,
+    pub shard: mte_eval::sweep::Shard,
     /// Parallel episodes (default: all cores).
     #[arg(long)]
     pub workers: Option<usize>,
@@ -540,8 +540,8 @@ pub struct AttackPatchArgs {
     #[arg(long, default_value_t = 16)]
     pub side: usize,
     /// Centre in world px (512 x 512), "x,y".
-    #[arg(long, default_value = "256,256")]
-    pub center: String,
+    #[arg(long, default_value = "256,256", value_parser = world_point)]
+    pub center: [f64; 2],
     /// Epochs (the protocol: 11).
     #[arg(long, default_value_t = 11)]
     pub epochs: usize,
@@ -666,7 +666,7 @@ pub struct CalibrateArgs {
     #[arg(long, default_value_t = 0.03)]
     pub eps: f64,
     /// Undefended arm.
-    #[arg(long, default_value = "ewm:0.01")]
+    #[arg(long, default_value = "ewm:0.01", value_parser = arm)]
     pub arm: String,
     /// Burst length q.
     #[arg(long, default_value_t = 2)]
@@ -688,5 +688,36 @@ fn at_least_one(s: &str) -> Result<usize, String> {
         Ok(0) => Err("0: expected an integer >= 1".into()),
         Ok(n) => Ok(n),
         Err(e) => Err(format!("{s:?}: expected an integer >= 1 ({e})")),
+    }
+}
+
+/// An arm: `open-loop` or an aggregator's text form, checked at parse time and kept as typed
+/// (run files name arms by their text).
+fn arm(s: &str) -> Result<String, String> {
+    s.parse::<mte_eval::pusht::Execution>()
+        .map(|_| s.trim().to_string())
+        .map_err(|e| format!("{s:?}: expected open-loop or an aggregator ({e})"))
+}
+
+/// A fault as TOML inline-table fields (`kind = "occluder", size = 24`).
+fn fault(s: &str) -> Result<mte_eval::corruption::Fault, String> {
+    let f: mte_eval::corruption::Fault = toml::from_str(s)
+        .map_err(|e| format!("{s:?}: expected fault fields such as kind = \"blank\" ({e})"))?;
+    f.validate().map_err(|e| e.to_string())?;
+    Ok(f)
+}
+
+/// A point of the 512 x 512 world, `"x,y"` in px.
+fn world_point(s: &str) -> Result<[f64; 2], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("{s:?}: expected \"x,y\" in world px ({e})"))?;
+    match v[..] {
+        [x, y] if x.is_finite() && y.is_finite() => Ok([x, y]),
+        _ => Err(format!(
+            "{s:?}: expected two finite numbers \"x,y\" in world px"
+        )),
     }
 }

@@ -642,6 +642,25 @@ fn hostile_inputs_are_clear_errors_or_bounded_work() {
             .code(2)
             .stderr(predicate::str::contains(">= 1"));
     }
+    // Typed arguments: a bad arm, fault or point is refused at parse time, listing what is
+    // accepted, before any policy loads.
+    for (flag, value, needle) in [
+        (
+            "--aggregators",
+            "ewm:0.01,medain",
+            "expected one of mean, latest, median",
+        ),
+        ("--fault", "kind = \"blnk\"", "blnk"),
+        ("--fault", "kind = \"occluder\", size = 0", "size"),
+    ] {
+        mte()
+            .args(["demo", flag, value, "--out"])
+            .arg(p("typed"))
+            .assert()
+            .code(2)
+            .stderr(predicate::str::contains(needle));
+    }
+    assert!(!p("typed").exists(), "nothing was written");
     // A burst longer than its period (M_min = 7 at T_p 16, T_o 2, h 2).
     mte()
         .args(["demo", "--episodes", "1", "--q", "99", "--out"])

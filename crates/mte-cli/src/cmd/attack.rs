@@ -92,19 +92,6 @@ fn loss_bar(cli: &Cli, len: usize, what: &str) -> indicatif::ProgressBar {
     bar
 }
 
-fn parse_center(s: &str) -> Result<[f64; 2]> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .with_context(|| format!("--center {s:?}: expected \"x,y\" in world px"))?;
-    ensure!(
-        v.len() == 2,
-        "--center {s:?}: expected two numbers \"x,y\" in world px"
-    );
-    Ok([v[0], v[1]])
-}
-
 fn image_frame(policy: &mte_policy::DiffusionPolicy) -> Result<(usize, usize)> {
     match policy.config().image_shape() {
         Some([_, h, w]) => Ok((w, h)),
@@ -115,7 +102,7 @@ fn image_frame(policy: &mte_policy::DiffusionPolicy) -> Result<(usize, usize)> {
 /// `mte attack patch`
 pub fn patch(cli: &Cli, a: &crate::args::AttackPatchArgs) -> Result<()> {
     use mte_policy::patch::{Ascent, PatchConfig, train_patch};
-    let center = parse_center(&a.center)?;
+    let center = a.center;
     let policy = mte_policy::checkpoint::load(&a.policy, &candle_core::Device::Cpu)
         .with_context(|| format!("loading {}", a.policy.display()))?;
     let (w, h) = image_frame(&policy)?;

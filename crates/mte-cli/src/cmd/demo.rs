@@ -33,8 +33,7 @@ pub fn run(cli: &Cli, a: &DemoArgs) -> Result<()> {
         "no policy checkpoint at {} (expected config.json and model.safetensors); pass --policy DIR",
         policy.display()
     );
-    let fault: Fault = toml::from_str(&a.fault)
-        .with_context(|| format!("--fault {:?}: expected e.g. kind = \"blank\"", a.fault))?;
+    let fault: Fault = a.fault.clone();
     let spec = SweepSpec {
         name: "demo".into(),
         policies: vec![policy.to_string_lossy().into_owned()],

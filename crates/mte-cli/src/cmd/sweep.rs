@@ -65,7 +65,7 @@ pub fn run(cli: &Cli, a: &SweepArgs) -> Result<()> {
     if let Some(base) = a.spec.parent() {
         sweep::resolve_policies(&mut spec, base);
     }
-    let shard: Shard = a.shard.parse()?;
+    let shard: Shard = a.shard;
     let t0 = std::time::Instant::now();
     let s = execute(cli, &spec, &a.out, a.resume, shard, workers(a.workers)?)?;
     print_summary(cli, &s, &a.out, t0.elapsed().as_secs_f64())?;

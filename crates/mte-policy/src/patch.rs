@@ -536,20 +536,48 @@ pub struct ProbeReport {
     pub latent_displacement_ratio: f64,
 }
 
-/// Probe `original` against `tuned` on `batches` batches of `batch_size` windows, with the
-/// patch at its trained place `origin`.
-#[allow(clippy::too_many_arguments)]
+/// A trained patch at its place in the frame: `texture` is `3 x side x side` CHW in
+/// `[0, 1]`, `origin` its top-left pixel `(x, y)` in the uncropped frame.
+#[derive(Clone, Copy, Debug)]
+pub struct PlacedPatch<'a> {
+    /// The texture.
+    pub texture: &'a [f32],
+    /// Side (px).
+    pub side: usize,
+    /// Top-left pixel `(x, y)`.
+    pub origin: (usize, usize),
+}
+
+/// How many windows the probe averages over, and its seed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ProbeConfig {
+    /// Batches.
+    pub batches: usize,
+    /// Windows per batch.
+    pub batch_size: usize,
+    /// Seed of the windows, noise and timesteps.
+    pub seed: u64,
+}
+
+/// Probe `original` against `tuned` on `cfg.batches` batches of `cfg.batch_size` windows,
+/// with the patch at its trained place.
 pub fn gradient_probe(
     original: &DiffusionPolicy,
     tuned: &DiffusionPolicy,
     data: &TrainData,
-    texture: &[f32],
-    side: usize,
-    origin: (usize, usize),
-    batches: usize,
-    batch_size: usize,
-    seed: u64,
+    placed: PlacedPatch<'_>,
+    cfg: ProbeConfig,
 ) -> Result<ProbeReport, PolicyError> {
+    let PlacedPatch {
+        texture,
+        side,
+        origin,
+    } = placed;
+    let ProbeConfig {
+        batches,
+        batch_size,
+        seed,
+    } = cfg;
     if batches == 0 || batch_size == 0 {
         return Err(config_err("batches", (batches, batch_size), ">= 1 each"));
     }

@@ -22,8 +22,8 @@ use crate::error::{PolicyError, config_err};
 use crate::model::DiffusionPolicy;
 use crate::normalize::{NormMode, Normalizer};
 use crate::train::{
-    ENCODER_PREFIX, Progress, TrainData, crop_origin, frame_features, learning_rate, push_crop,
-    sorted_vars,
+    Crop, ENCODER_PREFIX, Progress, TrainData, crop_origin, frame_features, learning_rate,
+    push_crop, sorted_vars,
 };
 
 /// The name of the regression target in a dataset.
@@ -187,7 +187,18 @@ pub fn pretrain_encoder(
             let f = rng.random_range(0..train_frames);
             let (top, left) =
                 crop_origin([h, w], [crop_h, crop_w], config.crop_is_random, &mut rng);
-            push_crop(px, f, [c, h, w], top, left, crop_h, crop_w, &mut imgs);
+            push_crop(
+                px,
+                f,
+                [c, h, w],
+                Crop {
+                    top,
+                    left,
+                    h: crop_h,
+                    w: crop_w,
+                },
+                &mut imgs,
+            );
             ys.extend_from_slice(&y[f * k..(f + 1) * k]);
         }
         let x = Tensor::from_slice(&imgs, (b, c, crop_h, crop_w), device)?;

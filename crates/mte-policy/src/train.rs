@@ -225,19 +225,30 @@ pub(crate) fn crop_origin(
     }
 }
 
-/// Copy the `(crop_h, crop_w)` window at (top, left) of HWC u8 frame `f` into `out` as CHW
-/// f32 in [0, 1].
-#[allow(clippy::too_many_arguments)]
+/// A window of a frame: top-left pixel and size.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Crop {
+    pub top: usize,
+    pub left: usize,
+    pub h: usize,
+    pub w: usize,
+}
+
+/// Copy the `crop` window of HWC u8 frame `f` (of shape `[c, h, w]`) into `out` as CHW f32
+/// in [0, 1].
 pub(crate) fn push_crop(
     px: &[u8],
     f: usize,
     [c, h, w]: [usize; 3],
-    top: usize,
-    left: usize,
-    crop_h: usize,
-    crop_w: usize,
+    crop: Crop,
     out: &mut Vec<f32>,
 ) {
+    let Crop {
+        top,
+        left,
+        h: crop_h,
+        w: crop_w,
+    } = crop;
     let base = f * h * w * c;
     for ch in 0..c {
         for y in top..top + crop_h {
@@ -297,7 +308,18 @@ fn draw_batch(
             if let (Some(shape @ [_, h, w]), Some(px)) = (image, &data.images) {
                 let (top, left) =
                     crop_origin([h, w], [crop_h, crop_w], crop && config.crop_is_random, rng);
-                push_crop(px, f, shape, top, left, crop_h, crop_w, &mut imgs);
+                push_crop(
+                    px,
+                    f,
+                    shape,
+                    Crop {
+                        top,
+                        left,
+                        h: crop_h,
+                        w: crop_w,
+                    },
+                    &mut imgs,
+                );
             }
         }
         for k in 0..tp as isize {
@@ -352,7 +374,18 @@ pub fn frame_features(
         let hi = (lo + 256).min(range.end);
         buf.clear();
         for f in lo..hi {
-            push_crop(px, f, [c, h, w], 0, 0, h, w, &mut buf);
+            push_crop(
+                px,
+                f,
+                [c, h, w],
+                Crop {
+                    top: 0,
+                    left: 0,
+                    h,
+                    w,
+                },
+                &mut buf,
+            );
         }
         let t = Tensor::from_slice(&buf, (hi - lo, c, h, w), policy.device())?;
         let feats = policy.image_features(&t)?;

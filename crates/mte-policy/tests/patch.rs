@@ -5,8 +5,8 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
 use mte_policy::config::{DiffusionConfig, ObsKind};
 use mte_policy::patch::{
-    Anchor, Ascent, FinetuneConfig, PatchConfig, finetune_encoder, gradient_probe, paste,
-    train_patch,
+    Anchor, Ascent, FinetuneConfig, PatchConfig, PlacedPatch, ProbeConfig, finetune_encoder,
+    gradient_probe, paste, train_patch,
 };
 use mte_policy::train::{TrainData, Windows, sample_batch};
 use mte_policy::{DiffusionPolicy, ObsBatch, StatsMap};
@@ -268,7 +268,7 @@ fn finetuning_changes_only_the_encoder_and_the_probe_is_neutral_on_itself() {
         }
     }
     assert!(encoder_changed, "no encoder weight moved");
-    let probe = gradient_probe(&p, &p, &d, &texture, 12, (30, 30), 1, 4, 0).expect("probe");
+    let probe = gradient_probe(&p, &p, &d, placed(&texture), PROBE).expect("probe");
     assert!((probe.cosine - 1.0).abs() < 1e-6, "{probe:?}");
     assert!((probe.grad_norm_ratio - 1.0).abs() < 1e-6, "{probe:?}");
     assert!(
@@ -276,7 +276,7 @@ fn finetuning_changes_only_the_encoder_and_the_probe_is_neutral_on_itself() {
         "{probe:?}"
     );
     let (other, _) = tiny(7);
-    let probe = gradient_probe(&p, &other, &d, &texture, 12, (30, 30), 1, 4, 0).expect("probe");
+    let probe = gradient_probe(&p, &other, &d, placed(&texture), PROBE).expect("probe");
     assert!(
         probe.cosine < 0.99,
         "different networks, different gradients: {probe:?}"
@@ -284,6 +284,20 @@ fn finetuning_changes_only_the_encoder_and_the_probe_is_neutral_on_itself() {
 }
 
 /// Clean image features of 8 fixed windows.
+const PROBE: ProbeConfig = ProbeConfig {
+    batches: 1,
+    batch_size: 4,
+    seed: 0,
+};
+
+fn placed(texture: &[f32]) -> PlacedPatch<'_> {
+    PlacedPatch {
+        texture,
+        side: 12,
+        origin: (30, 30),
+    }
+}
+
 fn clean_features(p: &DiffusionPolicy, d: &TrainData) -> Tensor {
     let win = Windows::new(d, p.config(), false);
     let mut rng = ChaCha8Rng::seed_from_u64(5);

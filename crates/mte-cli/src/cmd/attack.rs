@@ -244,16 +244,21 @@ pub fn probe(cli: &Cli, a: &crate::args::ProbeArgs) -> Result<()> {
     let (meta, patch) = mte_eval::patch_file::load(&a.patch)?;
     let origin = patch.origin(w, h)?;
     let data = crate::cmd::train::load_train_data(&a.data, original.config())?;
+    let texture = rgb_to_texture(patch.rgb(), meta.side);
     let r = gradient_probe(
         &original,
         &tuned,
         &data,
-        &rgb_to_texture(patch.rgb(), meta.side),
-        meta.side,
-        origin,
-        a.batches,
-        a.batch_size,
-        a.seed,
+        mte_policy::patch::PlacedPatch {
+            texture: &texture,
+            side: meta.side,
+            origin,
+        },
+        mte_policy::patch::ProbeConfig {
+            batches: a.batches,
+            batch_size: a.batch_size,
+            seed: a.seed,
+        },
     )?;
     let mut so = std::io::stdout().lock();
     match cli.format {

@@ -1,21 +1,15 @@
 //! Chunked visuomotor policies on candle: LeRobot-compatible Diffusion Policy.
 #![forbid(unsafe_code)]
 
-pub mod attack;
-pub mod checkpoint;
-pub mod config;
+pub mod diffusion;
 pub mod error;
 pub mod init;
 pub mod kernels;
-pub mod model;
 pub mod normalize;
-pub mod patch;
 pub mod policy;
-pub mod pretrain;
-pub mod scheduler;
-pub mod train;
-pub mod unet;
 pub mod vision;
+
+pub use diffusion::{attack, checkpoint, config, model, patch, pretrain, scheduler, train, unet};
 
 pub use attack::{PgdConfig, PgdOutcome};
 pub use config::{DiffusionConfig, ObsKind};

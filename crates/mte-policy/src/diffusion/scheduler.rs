@@ -717,7 +717,7 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
     use serde::Deserialize;
 
-    const FIXTURE: &str = include_str!("../tests/fixtures/diffusers_schedulers.json");
+    const FIXTURE: &str = include_str!("../../tests/fixtures/diffusers_schedulers.json");
 
     #[derive(Deserialize)]
     struct Fixture {

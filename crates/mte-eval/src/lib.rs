@@ -2,6 +2,12 @@
 //!
 //! Turns the pieces of mte into experiments whose outcomes pair episode by episode.
 //!
+//! - [`environment`]: the environment seam ([`environment::Environment`], native
+//!   [`environment::PushTEnv`]); [`episode`]: an episode's named stages and the observer
+//!   seam; [`pusht`]: chunked execution of a policy under corruption ([`corruption`]),
+//!   paired across arms; [`sweep`], [`store`], [`record`]: grids run into resumable run
+//!   directories; [`report`]: paired tests, tables and plots; [`machine`]: the CPU a run ran
+//!   on; [`calibrate`]: PGD budget calibration; [`patch_file`]: trained patches on disk.
 //! - [`synthetic`]: a stress test without a simulator. A smooth reference trajectory, a
 //!   chunked "policy" that predicts it with small noise, and a burst schedule that replaces
 //!   `q` of every `M_min` queries with arbitrary values. Every aggregator sees the same

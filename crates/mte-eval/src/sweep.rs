@@ -346,6 +346,36 @@ pub struct SweepSummary {
     pub failed_cells: Vec<String>,
 }
 
+/// One unit of work: a seed of a cell and the arms still to run on it.
+struct Task {
+    cell: usize,
+    seed: u64,
+    arms: Vec<Execution>,
+}
+
+/// A loaded policy, or why it could not be loaded (its cells fail, not the sweep).
+type Loaded = Result<Box<dyn ChunkPolicy + Send + Sync>, String>;
+
+/// The cell files of a shard, written by many workers: one lock per cell, and the error
+/// records counted per cell.
+struct Writers {
+    files: Vec<Mutex<CellWriter>>,
+    errors: Mutex<Vec<usize>>,
+}
+
+impl Writers {
+    fn append(&self, cell: usize, line: &Line) -> Result<(), SweepError> {
+        if matches!(line, Line::Error(_)) {
+            self.errors.lock().map_err(|_| poisoned())?[cell] += 1;
+        }
+        self.files[cell]
+            .lock()
+            .map_err(|_| poisoned())?
+            .append(line)
+            .map_err(SweepError::from)
+    }
+}
+
 /// Runs this shard of the grid into `run`, `workers` episodes at a time, skipping finished
 /// (arm, seed) pairs. Each finished episode is appended and synced at once.
 pub fn run(
@@ -364,120 +394,29 @@ pub fn run(
         .filter(|(i, _)| i % shard.count == shard.index)
         .map(|(_, c)| c)
         .collect();
-    // Work list: (cell, seed, arms still to run).
-    let mut tasks: Vec<(usize, u64, Vec<Execution>)> = Vec::new();
-    let mut skipped = 0;
-    let mut writers: Vec<Mutex<CellWriter>> = Vec::new();
-    for (ci, c) in cells.iter().enumerate() {
-        let done = run.finished(&c.id)?;
-        writers.push(Mutex::new(run.writer(&c.id)?));
-        for &seed in &c.seeds {
-            let mut arms = Vec::new();
-            for a in &c.arms {
-                if done.contains(&(a.clone(), seed)) {
-                    skipped += 1;
-                } else {
-                    arms.push(Execution::from_str(a).map_err(|e| field("arms", a, e.to_string()))?);
-                }
-            }
-            if !arms.is_empty() {
-                tasks.push((ci, seed, arms));
-            }
-        }
-    }
-    let total: usize = tasks.iter().map(|t| t.2.len()).sum();
-    reporter.start("episodes", total as u64);
-    // Load each policy once; a failure fails its cells, not the sweep.
-    let mut loaded: HashMap<&str, Result<_, String>> = HashMap::new();
-    for c in &cells {
-        loaded.entry(c.policy.as_str()).or_insert_with(|| {
-            policies
-                .load(&c.policy)
-                .map_err(|e| format!("loading policy {}: {e}", c.policy))
-        });
-    }
-    for c in &cells {
-        if let Some(Ok(p)) = loaded.get(c.policy.as_str()) {
-            check_burst(c, p.horizon(), p.n_obs_steps())?;
-        }
-    }
-    let errors = Mutex::new(vec![0usize; cells.len()]);
-    let append = |ci: usize, line: Line| -> Result<(), SweepError> {
-        if matches!(line, Line::Error(_)) {
-            errors.lock().map_err(|_| poisoned())?[ci] += 1;
-        }
-        writers[ci]
-            .lock()
-            .map_err(|_| poisoned())?
-            .append(&line)
-            .map_err(SweepError::from)
-    };
+    let (tasks, skipped, writers) = plan(&cells, run)?;
+    reporter.start("episodes", tasks.iter().map(|t| t.arms.len() as u64).sum());
+    let loaded = load_policies(&cells, policies)?;
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(workers.max(1))
         .build()
         .map_err(|e| field("workers", workers, format!("a thread pool ({e})")))?;
-    let results: Vec<Result<usize, SweepError>> = pool.install(|| {
-        tasks
-            .par_iter()
-            .map(|(ci, seed, arms)| -> Result<usize, SweepError> {
-                let c = cells[*ci];
-                let policy = match loaded.get(c.policy.as_str()) {
-                    Some(Ok(p)) => p,
-                    Some(Err(e)) => {
-                        for a in arms {
-                            append(
-                                *ci,
-                                Line::Error(ErrorRecord {
-                                    cell: c.id.clone(),
-                                    arm: Some(a.to_string()),
-                                    seed: Some(*seed),
-                                    error: e.clone(),
-                                }),
-                            )?;
-                            reporter.advance(1);
-                        }
-                        return Ok(0);
-                    }
-                    None => return Ok(0),
-                };
-                let mut ran = 0;
-                for &execution in arms {
-                    let ep = EpisodeSpec {
-                        needs: policy.needs(),
-                        seed: *seed,
-                        stream: spec.stream,
-                        h: c.h,
-                        max_steps: c.max_steps,
-                        execution,
-                        corruption: &c.corruption,
-                        noise_seed: manifest.noise_seed,
-                    };
-                    let line = match run_episode(policy.as_ref(), &ep) {
-                        Ok(mut r) => {
-                            r.cell = c.id.clone();
-                            ran += 1;
-                            Line::Episode(r)
-                        }
-                        Err(e) => Line::Error(ErrorRecord {
-                            cell: c.id.clone(),
-                            arm: Some(execution.to_string()),
-                            seed: Some(*seed),
-                            error: e.to_string(),
-                        }),
-                    };
-                    append(*ci, line)?;
-                    reporter.advance(1);
-                }
-                Ok(ran)
-            })
-            .collect()
-    });
+    let ctx = TaskContext {
+        spec,
+        noise_seed: manifest.noise_seed,
+        cells: &cells,
+        loaded: &loaded,
+        writers: &writers,
+        reporter,
+    };
+    let results: Vec<Result<usize, SweepError>> =
+        pool.install(|| tasks.par_iter().map(|t| ctx.run(t)).collect());
     reporter.finish();
     let mut episodes_run = 0;
     for r in results {
         episodes_run += r?;
     }
-    let errors = errors.into_inner().map_err(|_| poisoned())?;
+    let errors = writers.errors.into_inner().map_err(|_| poisoned())?;
     Ok(SweepSummary {
         cells: cells.len(),
         episodes_run,
@@ -490,6 +429,114 @@ pub fn run(
             .map(|(c, _)| c.id.clone())
             .collect(),
     })
+}
+
+/// The work list of `cells` (finished (arm, seed) pairs skipped and counted) and their
+/// open cell files.
+fn plan(cells: &[&CellSpec], run: &RunDir) -> Result<(Vec<Task>, usize, Writers), SweepError> {
+    let mut tasks = Vec::new();
+    let mut skipped = 0;
+    let mut files = Vec::new();
+    for (ci, c) in cells.iter().enumerate() {
+        let done = run.finished(&c.id)?;
+        files.push(Mutex::new(run.writer(&c.id)?));
+        for &seed in &c.seeds {
+            let mut arms = Vec::new();
+            for a in &c.arms {
+                if done.contains(&(a.clone(), seed)) {
+                    skipped += 1;
+                } else {
+                    arms.push(Execution::from_str(a).map_err(|e| field("arms", a, e.to_string()))?);
+                }
+            }
+            if !arms.is_empty() {
+                tasks.push(Task {
+                    cell: ci,
+                    seed,
+                    arms,
+                });
+            }
+        }
+    }
+    let errors = Mutex::new(vec![0; cells.len()]);
+    Ok((tasks, skipped, Writers { files, errors }))
+}
+
+/// Loads each policy of `cells` once, and checks every cell's burst against its policy.
+fn load_policies<'c>(
+    cells: &[&'c CellSpec],
+    policies: &dyn PolicySource,
+) -> Result<HashMap<&'c str, Loaded>, SweepError> {
+    let mut loaded: HashMap<&str, Loaded> = HashMap::new();
+    for c in cells {
+        loaded.entry(c.policy.as_str()).or_insert_with(|| {
+            policies
+                .load(&c.policy)
+                .map_err(|e| format!("loading policy {}: {e}", c.policy))
+        });
+    }
+    for c in cells {
+        if let Some(Ok(p)) = loaded.get(c.policy.as_str()) {
+            check_burst(c, p.horizon(), p.n_obs_steps())?;
+        }
+    }
+    Ok(loaded)
+}
+
+/// What every task of a sweep shares.
+struct TaskContext<'a> {
+    spec: &'a SweepSpec,
+    noise_seed: u64,
+    cells: &'a [&'a CellSpec],
+    loaded: &'a HashMap<&'a str, Loaded>,
+    writers: &'a Writers,
+    reporter: &'a dyn Reporter,
+}
+
+impl TaskContext<'_> {
+    /// Runs the arms of one task and appends a line per arm (an episode or its error);
+    /// returns the episodes run.
+    fn run(&self, t: &Task) -> Result<usize, SweepError> {
+        let c = self.cells[t.cell];
+        let error = |arm: Execution, error: String| {
+            Line::Error(ErrorRecord {
+                cell: c.id.clone(),
+                arm: Some(arm.to_string()),
+                seed: Some(t.seed),
+                error,
+            })
+        };
+        let mut ran = 0;
+        for &execution in &t.arms {
+            let line = match self.loaded.get(c.policy.as_str()) {
+                Some(Ok(policy)) => {
+                    let ep = EpisodeSpec {
+                        needs: policy.needs(),
+                        seed: t.seed,
+                        stream: self.spec.stream,
+                        h: c.h,
+                        max_steps: c.max_steps,
+                        execution,
+                        corruption: &c.corruption,
+                        noise_seed: self.noise_seed,
+                    };
+                    match run_episode(policy.as_ref(), &ep) {
+                        Ok(mut r) => {
+                            r.cell = c.id.clone();
+                            ran += 1;
+                            Line::Episode(r)
+                        }
+                        Err(e) => error(execution, e.to_string()),
+                    }
+                }
+                Some(Err(e)) => error(execution, e.clone()),
+                None => continue,
+            };
+            self.writers.append(t.cell, &line)?;
+            self.reporter.advance(1);
+        }
+        Ok(ran)
+    }
 }
 
 /// Refuses a burst longer than its period: `q` corrupted queries of every `period` (default

@@ -1,4 +1,19 @@
-//! Chunked visuomotor policies on candle: LeRobot-compatible Diffusion Policy.
+//! # mte-policy: chunked visuomotor policies on candle
+//!
+//! - [`policy`]: the seam, free of tensor types. [`ChunkPolicy`] (a history of `T_o`
+//!   [`Observation`]s in, a `T_p x d` chunk out, randomness injected, [`ObsNeeds`] saying
+//!   what it reads), [`AttackablePolicy`] (the gradient access PGD needs) and
+//!   [`load_policy`], which dispatches on a checkpoint's `config.json` `type`.
+//! - [`diffusion`]: Diffusion Policy as LeRobot 0.4.4 defines it (config, U-Net, schedulers,
+//!   model, checkpoints in both LeRobot layouts, training, PGD, the physical patch and the
+//!   encoder defence); its modules are re-exported here under their old paths.
+//! - Shared pieces: [`vision`] (the ResNet-18-GN encoder), [`kernels`] (fused CPU kernels with
+//!   backward passes), [`normalize`], [`init`] (seeded initialisation; candle's own CPU
+//!   initialisers use a global RNG).
+//!
+//! Conventions: observations and actions unnormalised in the environment's units (PushT:
+//! pixels of the 512 x 512 workspace), images RGB u8 HWC; every random draw comes from an
+//! injected seeded generator.
 #![forbid(unsafe_code)]
 
 pub mod diffusion;

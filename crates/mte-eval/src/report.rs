@@ -608,6 +608,78 @@ pub fn build(
             run: manifest.name.clone(),
         });
     }
+    let Loaded {
+        cells,
+        failures,
+        episodes,
+        mut notes,
+    } = load_records(manifest, lines)?;
+    // Arms of the run, in order of first appearance.
+    let mut all_arms: Vec<String> = Vec::new();
+    for c in &cells {
+        for a in &c.arms {
+            if !all_arms.contains(a) {
+                all_arms.push(a.clone());
+            }
+        }
+    }
+    let (baseline, robust) = choose_arms(&all_arms, opts)?;
+    let corrupted: Vec<usize> = (0..cells.len()).filter(|&i| !cells[i].is_clean()).collect();
+    let main = main_rows(&cells, &corrupted, (&baseline, &robust), &mut notes)?;
+    let focus_ci = focus_cell(manifest, &cells, &corrupted, opts)?;
+    let focus = focus_table(&cells[focus_ci], &baseline, &mut notes)?;
+    let (mut brackets, mut distributions, mut overhead) = (Vec::new(), Vec::new(), Vec::new());
+    for arm in &all_arms {
+        let (b, d) = arm_diagnostics(&cells, &corrupted, arm);
+        brackets.extend(b);
+        distributions.extend(d);
+        overhead.extend(arm_overhead(&cells, arm));
+    }
+    let defence = match &opts.defence {
+        Some(pair) => Some(defence::build(&cells, pair, &all_arms, &mut notes)?),
+        None => None,
+    };
+    let plots = plots(&cells, &corrupted, &baseline, &main)?
+        .into_iter()
+        .map(Plot::new)
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Report {
+        name: manifest.name.clone(),
+        manifest: ManifestInfo {
+            format: manifest.format.clone(),
+            mte_version: manifest.mte_version.clone(),
+            git_commit: manifest.git_commit.clone(),
+            created_unix_s: manifest.created_unix_s,
+            noise_seed: manifest.noise_seed,
+            machines: manifest.machines.iter().map(|m| m.summary()).collect(),
+        },
+        cells: cells.len(),
+        corrupted_cells: corrupted.len(),
+        episodes,
+        baseline,
+        robust,
+        main,
+        focus,
+        brackets,
+        distributions,
+        overhead,
+        failures,
+        defence,
+        notes,
+        plots,
+    })
+}
+
+/// The records of a run, by cell, checked; failures; notes on what was left out.
+struct Loaded<'a> {
+    cells: Vec<CellData<'a>>,
+    failures: Vec<ErrorRecord>,
+    episodes: usize,
+    notes: Vec<String>,
+}
+
+/// Sorts `lines` into the manifest's cells, checking every episode record.
+fn load_records<'a>(manifest: &'a Manifest, lines: &'a [Line]) -> Result<Loaded<'a>, ReportError> {
     let index: HashMap<&str, usize> = manifest
         .cells
         .iter()
@@ -627,21 +699,7 @@ pub fn build(
                         seed: r.seed,
                     }
                 })?;
-                if !r.max_coverage.is_finite() {
-                    return Err(ReportError::NonFiniteCoverage {
-                        cell: r.cell.clone(),
-                        arm: r.arm.clone(),
-                        seed: r.seed,
-                        value: r.max_coverage,
-                    });
-                }
-                r.check()
-                    .map_err(|reason| ReportError::InconsistentRecord {
-                        cell: r.cell.clone(),
-                        arm: r.arm.clone(),
-                        seed: r.seed,
-                        reason,
-                    })?;
+                check_record(r)?;
                 if cells[ci].add(r) {
                     episodes += 1;
                 } else {
@@ -668,47 +726,65 @@ pub fn build(
             ));
         }
     }
+    Ok(Loaded {
+        cells,
+        failures,
+        episodes,
+        notes,
+    })
+}
 
-    // Arms of the run, in order of first appearance.
-    let mut all_arms: Vec<String> = Vec::new();
-    for c in &cells {
-        for a in &c.arms {
-            if !all_arms.contains(a) {
-                all_arms.push(a.clone());
-            }
-        }
+/// A record's coverage is finite and its counts agree ([`EpisodeRecord::check`]).
+fn check_record(r: &EpisodeRecord) -> Result<(), ReportError> {
+    if !r.max_coverage.is_finite() {
+        return Err(ReportError::NonFiniteCoverage {
+            cell: r.cell.clone(),
+            arm: r.arm.clone(),
+            seed: r.seed,
+            value: r.max_coverage,
+        });
     }
-    let (baseline, robust) = choose_arms(&all_arms, opts)?;
+    r.check().map_err(|reason| ReportError::InconsistentRecord {
+        cell: r.cell.clone(),
+        arm: r.arm.clone(),
+        seed: r.seed,
+        reason,
+    })
+}
 
-    let corrupted: Vec<usize> = (0..cells.len()).filter(|&i| !cells[i].is_clean()).collect();
+/// Sections 1 and 4: one row per corrupted cell, Holm-adjusted over the rows.
+fn main_rows(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    (baseline, robust): (&str, &str),
+    notes: &mut Vec<String>,
+) -> Result<Vec<MainRow>, ReportError> {
     let clean_of = |ci: usize| -> Option<usize> {
         let s = cells[ci].spec;
         cells
             .iter()
             .position(|c| c.is_clean() && c.spec.policy == s.policy && c.spec.h == s.h)
     };
-
-    // 1 + 4. Main table and recovered fractions.
     let mut main = Vec::new();
-    for &ci in &corrupted {
+    for &ci in corrupted {
         let c = &cells[ci];
         let clean = match clean_of(ci) {
-            Some(cj) => clean_ref(&cells[cj], &baseline)?,
+            Some(cj) => clean_ref(&cells[cj], baseline)?,
             None => None,
         };
-        let comparison = if c.has(&baseline) && c.has(&robust) {
+        let comparison = if c.has(baseline) && c.has(robust) {
             let what = format!("cell `{}`, `{robust}` vs `{baseline}`", c.spec.id);
             Some(compare(
-                c.episodes(&baseline),
-                c.episodes(&robust),
-                &robust,
+                c.episodes(baseline),
+                c.episodes(robust),
+                robust,
                 &what,
             )?)
         } else {
             notes.push(format!(
                 "cell `{}` lacks arm `{}`: no comparison",
                 c.spec.id,
-                if c.has(&baseline) { &robust } else { &baseline }
+                if c.has(baseline) { robust } else { baseline }
             ));
             None
         };
@@ -750,124 +826,94 @@ pub fn build(
         r.holm_wilcoxon = w;
         r.holm_mcnemar = m;
     }
+    Ok(main)
+}
 
-    // 2. Aggregator table.
-    let focus_ci = match &opts.focus_cell {
-        Some(id) => *index
-            .get(id.as_str())
-            .ok_or_else(|| ReportError::UnknownFocusCell { cell: id.clone() })?,
-        None => {
-            let pool: Vec<usize> = if corrupted.is_empty() {
-                (0..cells.len()).collect()
-            } else {
-                corrupted.clone()
-            };
-            let mut best = pool[0];
-            for &i in &pool {
-                if cells[i].arms.len() > cells[best].arms.len() {
-                    best = i;
-                }
-            }
-            best
-        }
+/// Section 2's cell: the one asked for, else the corrupted cell with the most arms.
+fn focus_cell(
+    manifest: &Manifest,
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    opts: &ReportOptions,
+) -> Result<usize, ReportError> {
+    if let Some(id) = &opts.focus_cell {
+        return manifest
+            .cells
+            .iter()
+            .position(|c| &c.id == id)
+            .ok_or_else(|| ReportError::UnknownFocusCell { cell: id.clone() });
+    }
+    let pool: Vec<usize> = if corrupted.is_empty() {
+        (0..cells.len()).collect()
+    } else {
+        corrupted.to_vec()
     };
-    let focus = focus_table(&cells[focus_ci], &baseline, &mut notes)?;
-
-    // 3, 5, 6. Per-arm tables.
-    let diag_cells: &[usize] = &corrupted;
-    let mut brackets = Vec::new();
-    let mut distributions = Vec::new();
-    let mut overhead = Vec::new();
-    for arm in &all_arms {
-        let mut acc = BracketAccumulator::default();
-        let mut with_bracket = 0;
-        let (mut m, mut q) = (Vec::<u64>::new(), Vec::<u64>::new());
-        for &ci in diag_cells {
-            for r in cells[ci].episodes(arm) {
-                if let Some(b) = &r.bracket {
-                    acc.merge(b);
-                    with_bracket += 1;
-                }
-                add_counts(&mut m, &r.m_counts);
-                add_counts(&mut q, &r.q_counts);
-            }
-        }
-        if with_bracket > 0 {
-            brackets.push(ArmBrackets {
-                arm: arm.clone(),
-                episodes: with_bracket,
-                rows: acc.rows(),
-            });
-        }
-        if arm != OPEN_LOOP && (m.iter().any(|&k| k > 0) || q.iter().any(|&k| k > 0)) {
-            distributions.push(Distribution {
-                arm: arm.clone(),
-                m,
-                q,
-            });
-        }
-        let mut o = Overhead {
-            arm: arm.clone(),
-            episodes: 0,
-            steps: 0,
-            times: StageTimes::default(),
-            runner_s: 0.0,
-        };
-        for c in &cells {
-            for r in c.episodes(arm) {
-                o.episodes += 1;
-                o.steps += r.steps as u64;
-                o.times.policy_s += r.times.policy_s;
-                o.times.sim_s += r.times.sim_s;
-                o.times.render_s += r.times.render_s;
-                o.times.corruption_s += r.times.corruption_s;
-                o.times.ensemble_s += r.times.ensemble_s;
-                o.times.total_s += r.times.total_s;
-                o.runner_s += r.times.overhead_s();
-            }
-        }
-        if o.episodes > 0 {
-            overhead.push(o);
+    let mut best = pool[0];
+    for &i in &pool {
+        if cells[i].arms.len() > cells[best].arms.len() {
+            best = i;
         }
     }
+    Ok(best)
+}
 
-    // 9. Defence table.
-    let defence = match &opts.defence {
-        Some(pair) => Some(defence::build(&cells, pair, &all_arms, &mut notes)?),
-        None => None,
+/// Sections 3 and 5 for one arm: bracket diagnostics and the `M`, `q` distributions over
+/// the corrupted cells.
+fn arm_diagnostics(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    arm: &str,
+) -> (Option<ArmBrackets>, Option<Distribution>) {
+    let mut acc = BracketAccumulator::default();
+    let mut with_bracket = 0;
+    let (mut m, mut q) = (Vec::<u64>::new(), Vec::<u64>::new());
+    for &ci in corrupted {
+        for r in cells[ci].episodes(arm) {
+            if let Some(b) = &r.bracket {
+                acc.merge(b);
+                with_bracket += 1;
+            }
+            add_counts(&mut m, &r.m_counts);
+            add_counts(&mut q, &r.q_counts);
+        }
+    }
+    let brackets = (with_bracket > 0).then(|| ArmBrackets {
+        arm: arm.to_string(),
+        episodes: with_bracket,
+        rows: acc.rows(),
+    });
+    let shown = arm != OPEN_LOOP && (m.iter().any(|&k| k > 0) || q.iter().any(|&k| k > 0));
+    let distribution = shown.then(|| Distribution {
+        arm: arm.to_string(),
+        m,
+        q,
+    });
+    (brackets, distribution)
+}
+
+/// Section 6 for one arm: where its episodes' time went, over every cell.
+fn arm_overhead(cells: &[CellData<'_>], arm: &str) -> Option<Overhead> {
+    let mut o = Overhead {
+        arm: arm.to_string(),
+        episodes: 0,
+        steps: 0,
+        times: StageTimes::default(),
+        runner_s: 0.0,
     };
-
-    // 8. Plots.
-    let plots = plots(&cells, &corrupted, &baseline, &main)?
-        .into_iter()
-        .map(Plot::new)
-        .collect::<Result<Vec<_>, _>>()?;
-
-    Ok(Report {
-        name: manifest.name.clone(),
-        manifest: ManifestInfo {
-            format: manifest.format.clone(),
-            mte_version: manifest.mte_version.clone(),
-            git_commit: manifest.git_commit.clone(),
-            created_unix_s: manifest.created_unix_s,
-            noise_seed: manifest.noise_seed,
-            machines: manifest.machines.iter().map(|m| m.summary()).collect(),
-        },
-        cells: cells.len(),
-        corrupted_cells: corrupted.len(),
-        episodes,
-        baseline,
-        robust,
-        main,
-        focus,
-        brackets,
-        distributions,
-        overhead,
-        failures,
-        defence,
-        notes,
-        plots,
-    })
+    for c in cells {
+        for r in c.episodes(arm) {
+            o.episodes += 1;
+            o.steps += r.steps as u64;
+            o.times.policy_s += r.times.policy_s;
+            o.times.sim_s += r.times.sim_s;
+            o.times.render_s += r.times.render_s;
+            o.times.corruption_s += r.times.corruption_s;
+            o.times.ensemble_s += r.times.ensemble_s;
+            o.times.total_s += r.times.total_s;
+            o.runner_s += r.times.overhead_s();
+        }
+    }
+    (o.episodes > 0).then_some(o)
 }
 
 /// Baseline and robust arm from the options or the defaults.

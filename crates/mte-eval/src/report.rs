@@ -320,7 +320,8 @@ pub struct CleanRef {
     pub success: f64,
 }
 
-/// Recovered fraction of one cell; `None` where undefined, with the reason.
+/// Recovered fraction of one cell; `None` where undefined or not meaningful, with the
+/// reason.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Recovered {
     /// On mean max coverage.
@@ -329,6 +330,72 @@ pub struct Recovered {
     pub success: Option<f64>,
     /// Why the coverage fraction is undefined, when it is.
     pub note: Option<String>,
+    /// The test of the denominator: does the corruption lower the baseline at all?
+    pub denominator: Option<Denominator>,
+}
+
+/// Significance level of the denominator test.
+pub const DENOMINATOR_ALPHA: f64 = 0.05;
+
+/// The recovered fraction's denominator, `clean − corrupted` for the baseline arm, tested on
+/// the seeds both cells ran (the same reset seeds, so paired): a fraction is a number only
+/// where the corruption significantly lowers the baseline (two-sided paired Wilcoxon on max
+/// coverage, exact McNemar on success, at [`DENOMINATOR_ALPHA`], and a positive
+/// difference); otherwise it is "not meaningful" (dividing by noise).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Denominator {
+    /// Paired seeds.
+    pub n: usize,
+    /// Mean clean − corrupted max coverage over them.
+    pub coverage_delta: Option<f64>,
+    /// Its two-sided paired Wilcoxon p-value.
+    pub coverage_p: Option<f64>,
+    /// Clean − corrupted success rate over them.
+    pub success_delta: Option<f64>,
+    /// Its exact McNemar p-value.
+    pub success_p: Option<f64>,
+}
+
+impl Denominator {
+    /// From the comparison of the corrupted baseline (`base`) with the clean one (`other`).
+    fn of(c: &Comparison) -> Self {
+        Self {
+            n: c.n,
+            coverage_delta: c.delta.map(|d| d.mean),
+            coverage_p: c.wilcoxon_p,
+            success_delta: c.baseline_success.zip(c.other_success).map(|(b, o)| o - b),
+            success_p: c.mcnemar.map(|m| m.p_value),
+        }
+    }
+
+    /// The coverage denominator is significantly above zero.
+    pub fn coverage_meaningful(&self) -> bool {
+        self.coverage_delta.is_some_and(|d| d > 0.0)
+            && self.coverage_p.is_some_and(|p| p < DENOMINATOR_ALPHA)
+    }
+
+    /// The success denominator is significantly above zero.
+    pub fn success_meaningful(&self) -> bool {
+        self.success_delta.is_some_and(|d| d > 0.0)
+            && self.success_p.is_some_and(|p| p < DENOMINATOR_ALPHA)
+    }
+}
+
+/// The denominator test of a corrupted cell against its clean cell, for `arm`.
+fn denominator(
+    corrupted: &CellData<'_>,
+    clean: Option<&CellData<'_>>,
+    arm: &str,
+) -> Result<Option<Denominator>, ReportError> {
+    let Some(clean) = clean.filter(|c| c.has(arm) && corrupted.has(arm)) else {
+        return Ok(None);
+    };
+    let what = format!(
+        "denominator: cell `{}` vs clean `{}`, arm `{arm}`",
+        corrupted.spec.id, clean.spec.id
+    );
+    let c = compare(corrupted.episodes(arm), clean.episodes(arm), arm, &what)?;
+    Ok(Some(Denominator::of(&c)))
 }
 
 /// A row of the main table (one corrupted cell).
@@ -768,10 +835,12 @@ fn main_rows(
     let mut main = Vec::new();
     for &ci in corrupted {
         let c = &cells[ci];
-        let clean = match clean_of(ci) {
-            Some(cj) => clean_ref(&cells[cj], baseline)?,
+        let clean_cell = clean_of(ci).map(|cj| &cells[cj]);
+        let clean = match clean_cell {
+            Some(cc) => clean_ref(cc, baseline)?,
             None => None,
         };
+        let den = denominator(c, clean_cell, baseline)?;
         let comparison = if c.has(baseline) && c.has(robust) {
             let what = format!("cell `{}`, `{robust}` vs `{baseline}`", c.spec.id);
             Some(compare(
@@ -794,7 +863,7 @@ fn main_rows(
                 c.spec.id, cmp.unpaired
             ));
         }
-        let recovered = recovered(clean.as_ref(), comparison.as_ref());
+        let recovered = recovered(clean.as_ref(), comparison.as_ref(), den);
         main.push(MainRow {
             cell: c.spec.id.clone(),
             policy: c.spec.policy.clone(),
@@ -977,33 +1046,57 @@ fn clean_ref(c: &CellData<'_>, arm: &str) -> Result<Option<CleanRef>, ReportErro
     )
 }
 
-/// Recovered fractions of a row; `None` with the reason where undefined.
-fn recovered(clean: Option<&CleanRef>, cmp: Option<&Comparison>) -> Recovered {
+/// Recovered fractions of a row; `None` with the reason where undefined, or where the
+/// denominator is not significantly above zero ("not meaningful").
+fn recovered(
+    clean: Option<&CleanRef>,
+    cmp: Option<&Comparison>,
+    denominator: Option<Denominator>,
+) -> Recovered {
+    let undefined = |note: &str| Recovered {
+        coverage: None,
+        success: None,
+        note: Some(note.into()),
+        denominator,
+    };
     let Some(clean) = clean else {
-        return Recovered {
-            coverage: None,
-            success: None,
-            note: Some("no clean cell with the baseline arm for this policy and h".into()),
-        };
+        return undefined("no clean cell with the baseline arm for this policy and h");
     };
     let Some((b, o)) = cmp.and_then(|c| c.baseline.zip(c.other)) else {
-        return Recovered {
-            coverage: None,
-            success: None,
-            note: Some("no paired episodes".into()),
-        };
+        return undefined("no paired episodes");
     };
-    let (coverage, note) = match recovered_fraction(clean.coverage.mean, b.mean, o.mean) {
-        Ok(f) => (Some(f), None),
-        Err(e) => (None, Some(e.to_string())),
+    let Some(den) = denominator.filter(|d| d.n > 0) else {
+        return undefined(
+            "no seed ran both the clean and the corrupted cell: the denominator cannot be tested",
+        );
+    };
+    let (coverage, note) = if !den.coverage_meaningful() {
+        (
+            None,
+            Some(format!(
+                "not meaningful: the corruption does not lower the baseline's coverage \
+                 significantly (clean − corrupted {}, paired Wilcoxon p = {}, n = {})",
+                den.coverage_delta
+                    .map_or_else(|| "n/a".into(), |d| format!("{d:+.3}")),
+                den.coverage_p.map_or_else(|| "n/a".into(), fmt_p),
+                den.n
+            )),
+        )
+    } else {
+        match recovered_fraction(clean.coverage.mean, b.mean, o.mean) {
+            Ok(f) => (Some(f), None),
+            Err(e) => (None, Some(e.to_string())),
+        }
     };
     let success = cmp
         .and_then(|c| c.baseline_success.zip(c.other_success))
+        .filter(|_| den.success_meaningful())
         .and_then(|(sb, so)| recovered_fraction(clean.success, sb, so).ok());
     Recovered {
         coverage,
         success,
         note,
+        denominator,
     }
 }
 
@@ -1240,7 +1333,13 @@ fn plots(
                     }
                     let what = format!("cell `{}`, `{arm}` vs `{baseline}`", c.spec.id);
                     let cmp = compare(c.episodes(baseline), c.episodes(arm), arm, &what)?;
+                    // Only where the denominator is significantly above zero.
                     let clean_mean = row_of(ci)
+                        .filter(|r| {
+                            r.recovered
+                                .denominator
+                                .is_some_and(|d| d.coverage_meaningful())
+                        })
                         .and_then(|r| r.clean.as_ref())
                         .map(|r| r.coverage.mean);
                     let f = match (clean_mean, cmp.baseline, cmp.other) {
@@ -1655,8 +1754,11 @@ impl Report {
         b.push(Block::Heading("4. Recovered fraction".into()));
         b.push(Block::Para(format!(
             "(robust − baseline) / (clean − baseline) on mean max coverage and on success rate: \
-             1 restores the clean baseline, 0 does nothing; n/a where undefined. Baseline {}, \
-             robust {}.",
+             1 restores the clean baseline, 0 does nothing. n/a where undefined, and where the \
+             denominator is not significantly above zero (the corruption does not lower the \
+             baseline: paired Wilcoxon on coverage, exact McNemar on success, p < 0.05 over \
+             the seeds both cells ran), since a fraction of noise is not meaningful. \
+             Baseline {}, robust {}.",
             code(&self.baseline),
             code(&self.robust)
         )));
@@ -2363,10 +2465,13 @@ mod tests {
         let r = build(&manifest(), &lines, &ReportOptions::default()).unwrap();
         let rec = &row(&r, Q1).recovered;
         assert_eq!(rec.coverage, None);
+        // A zero denominator is not significantly above zero: "not meaningful", before
+        // the fraction's own "undefined" could apply.
         assert!(
-            rec.note.as_deref().unwrap().contains("undefined"),
+            rec.note.as_deref().unwrap().contains("not meaningful"),
             "{rec:?}"
         );
+        assert!(!rec.denominator.unwrap().coverage_meaningful());
         let md = r.markdown();
         assert!(!md.contains("NaN") && !md.contains("inf"), "{md}");
         let line = md

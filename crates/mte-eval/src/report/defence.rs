@@ -20,7 +20,8 @@ use serde::Serialize;
 
 use super::{
     Block, CellData, CleanRef, Comparison, Recovered, ReportError, clean_ref, code, compare, delta,
-    est, f3, holm_opt, opt_p, pct, policy_label, recovered, stats_err, success_count, table,
+    denominator, est, f3, holm_opt, opt_p, pct, policy_label, recovered, stats_err, success_count,
+    table,
 };
 
 /// Which two policies the defence table compares (policy paths as in the spec, or their
@@ -146,7 +147,8 @@ pub(super) fn build(
                 None
             };
             let undefended_clean = clean(&pair.undefended, d.spec.h, arm)?;
-            let recovered = recovered(undefended_clean.as_ref(), Some(&comparison));
+            let den = denominator(u, find(&pair.undefended, "clean", d.spec.h), arm)?;
+            let recovered = recovered(undefended_clean.as_ref(), Some(&comparison), den);
             rows.push(DefenceRow {
                 corruption: corruption.clone(),
                 h: d.spec.h,

@@ -413,6 +413,9 @@ pub struct MainRow {
     pub h: usize,
     /// The baseline arm on the matching clean cell, if the run has one.
     pub clean: Option<CleanRef>,
+    /// The robust arm on the same clean cell: with `clean`, the clean-data gap between the
+    /// arms, a confound of every comparison under corruption.
+    pub robust_clean: Option<CleanRef>,
     /// Robust against baseline; `None` when the cell lacks one of the two arms.
     pub comparison: Option<Comparison>,
     /// Holm-adjusted Wilcoxon p over the rows of the table.
@@ -841,6 +844,10 @@ fn main_rows(
             None => None,
         };
         let den = denominator(c, clean_cell, baseline)?;
+        let robust_clean = match clean_cell.filter(|cc| cc.has(robust)) {
+            Some(cc) => clean_ref(cc, robust)?,
+            None => None,
+        };
         let comparison = if c.has(baseline) && c.has(robust) {
             let what = format!("cell `{}`, `{robust}` vs `{baseline}`", c.spec.id);
             Some(compare(
@@ -871,6 +878,7 @@ fn main_rows(
             q: c.spec.q(),
             h: c.spec.h,
             clean,
+            robust_clean,
             comparison,
             holm_wilcoxon: None,
             holm_mcnemar: None,
@@ -1484,6 +1492,14 @@ fn table(head: &[&str], rows: Vec<Vec<String>>) -> Block {
     }
 }
 
+/// A clean reference as `coverage (success%)`, or a dash.
+fn clean_cell_text(k: Option<&CleanRef>) -> String {
+    k.map_or_else(
+        || "—".into(),
+        |k| format!("{} ({}%)", f3(k.coverage.mean), pct(k.success)),
+    )
+}
+
 /// The report's machine line: records are bit-identical only on one CPU model.
 fn machine_line(machines: &[String]) -> String {
     match machines {
@@ -1557,8 +1573,10 @@ impl Report {
         )));
         b.push(Block::Para(format!(
             "One row per corrupted cell. Mean max coverage ± standard error over the seeds both \
-             arms ran (n), success rate in parentheses; clean: the baseline on the clean cell of \
-             the same policy and h. Δ = robust − baseline per seed, ± paired standard error. \
+             arms ran (n), success rate in parentheses; clean: the baseline and the robust arm on \
+             the clean cell of the same policy and h (a gap between them on clean data is a \
+             confound of every comparison below). Δ = robust − baseline per seed, ± paired \
+             standard error. \
              p (W): two-sided Wilcoxon signed-rank test on paired max coverage; p (McN): exact \
              McNemar test on paired success, b:c = baseline-only : robust-only successes. Holm \
              over the {} rows.",
@@ -1582,10 +1600,8 @@ impl Report {
                         r.q.to_string(),
                         r.h.to_string(),
                         c.map_or_else(|| "0".into(), |c| c.n.to_string()),
-                        r.clean.as_ref().map_or_else(
-                            || "—".into(),
-                            |k| format!("{} ({}%)", f3(k.coverage.mean), pct(k.success)),
-                        ),
+                        clean_cell_text(r.clean.as_ref()),
+                        clean_cell_text(r.robust_clean.as_ref()),
                         with_rate(
                             c.and_then(|c| c.baseline.as_ref()),
                             c.and_then(|c| c.baseline_success),
@@ -1611,7 +1627,8 @@ impl Report {
                     "q",
                     "h",
                     "n",
-                    "clean",
+                    "clean (baseline)",
+                    "clean (robust)",
                     "baseline",
                     "robust",
                     "Δ",
@@ -2443,6 +2460,9 @@ mod tests {
         assert_eq!(clean.cell, CLEAN);
         assert!((clean.coverage.mean - mean(&CLEAN_EWM)).abs() < 1e-12);
         assert!((clean.success - 4.0 / 8.0).abs() < 1e-12);
+        // Both arms' clean values: the clean-data gap is shown beside every comparison.
+        let robust_clean = row(&r, Q1).robust_clean.as_ref().unwrap();
+        assert!((robust_clean.coverage.mean - mean(&CLEAN_MEDIAN)).abs() < 1e-12);
         let f = row(&r, Q1).recovered.coverage.unwrap();
         let want = (mean(&Q1_MEDIAN) - mean(&Q1_EWM)) / (mean(&CLEAN_EWM) - mean(&Q1_EWM));
         assert!((f - want).abs() < 1e-12);

@@ -11,10 +11,10 @@ root=$(cd "$(dirname "$0")/../.." && pwd)
 work=$(mktemp -d)
 trap 'git -C "$root" worktree remove --force "$work/base" >/dev/null 2>&1 || true; rm -rf "$work"' EXIT
 git -C "$root" worktree add --detach "$work/base" "$base" >/dev/null
-# One target directory for both builds (the dependencies compile once); the base binary is
-# copied aside before the working tree's build replaces it.
-(cd "$work/base" && CARGO_TARGET_DIR="$root/target" cargo build --release --locked -q -p mte-cli)
-cp "$root/target/release/mte" "$work/mte-base"
+# The base builds in a target directory of its own: sharing the working tree's would let
+# cargo's mtime fingerprints take the base's artifacts of the workspace crates for fresh ones.
+(cd "$work/base" && CARGO_TARGET_DIR="$root/target/equivalence-base" cargo build --release --locked -q -p mte-cli)
+cp "$root/target/equivalence-base/release/mte" "$work/mte-base"
 (cd "$root" && cargo build --release --locked -q -p mte-cli)
 run() { # binary, output directory
     "$1" --no-progress -q sweep "$root/tools/equivalence/grid.toml" --out "$2/grid" || true

@@ -3,6 +3,7 @@
 use std::io::Write as _;
 
 use anyhow::{Context, Result, ensure};
+use mte_eval::Reporter as _;
 use mte_eval::calibrate::{CalibrationSpec, calibrate as run_calibration};
 use mte_eval::sweep::{CheckpointSource, PolicySource as _};
 
@@ -71,27 +72,6 @@ pub fn calibrate(cli: &Cli, a: &CalibrateArgs) -> Result<()> {
     Ok(())
 }
 
-/// A progress bar on stderr with the latest loss (hidden when quiet or not a terminal).
-fn loss_bar(cli: &Cli, len: usize, what: &str) -> indicatif::ProgressBar {
-    let show =
-        !cli.no_progress && !cli.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let bar = indicatif::ProgressBar::with_draw_target(
-        Some(len as u64),
-        if show {
-            indicatif::ProgressDrawTarget::stderr()
-        } else {
-            indicatif::ProgressDrawTarget::hidden()
-        },
-    );
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(&format!(
-            "{what} [{{elapsed_precise}}] {{wide_bar}} {{pos}}/{{len}} {{msg}}"
-        ))
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-    );
-    bar
-}
-
 fn image_frame(policy: &mte_policy::DiffusionPolicy) -> Result<(usize, usize)> {
     match policy.config().image_shape() {
         Some([_, h, w]) => Ok((w, h)),
@@ -130,12 +110,11 @@ pub fn patch(cli: &Cli, a: &crate::args::AttackPatchArgs) -> Result<()> {
     };
     let data = crate::cmd::train::load_train_data(&a.data, policy.config())?;
     let t0 = std::time::Instant::now();
-    let bar = loss_bar(cli, cfg.epochs, "patch epochs");
+    let bar = Bar::for_cli(cli, "patch epochs", cfg.epochs);
     let report = train_patch(&policy, &data, &cfg, &|epoch, loss| {
-        bar.set_position(epoch as u64 + 1);
-        bar.set_message(format!("policy loss {loss:.4}"));
+        bar.set(epoch as u64 + 1, Some(format!("policy loss {loss:.4}")));
     })?;
-    bar.finish_and_clear();
+    bar.finish();
     let meta = mte_eval::patch_file::PatchMeta::new(&cfg, &report, center, [w, h], &a.policy);
     mte_eval::patch_file::save(&a.out, &meta, &report.rgb_u8())?;
     let secs = t0.elapsed().as_secs_f64();
@@ -181,7 +160,7 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
         ..FinetuneConfig::default()
     };
     let t0 = std::time::Instant::now();
-    let bar = loss_bar(cli, cfg.steps, "fine-tune");
+    let bar = Bar::for_cli(cli, "fine-tune", cfg.steps);
     let report = finetune_encoder(
         &policy,
         &varmap,
@@ -190,11 +169,10 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
         meta.side,
         &cfg,
         &|s, l| {
-            bar.set_position(s as u64 + 1);
-            bar.set_message(format!("loss {l:.4}"));
+            bar.set(s as u64 + 1, Some(format!("loss {l:.4}")));
         },
     )?;
-    bar.finish_and_clear();
+    bar.finish();
     let weights: std::collections::HashMap<String, candle_core::Tensor> = varmap
         .data()
         .lock()

@@ -4,14 +4,15 @@ use std::io::Write as _;
 
 use anyhow::{Context, Result};
 use candle_core::Device;
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use mte_data::Dataset;
 use mte_data::dataset::names;
+use mte_eval::Reporter as _;
 use mte_policy::config::{DiffusionConfig, ObsKind};
 use mte_policy::pretrain::{EncoderPretrainConfig, pretrain_encoder};
 use mte_policy::train::{TrainConfig, TrainData, stats_from, train};
 
 use crate::args::{Cli, Format, PolicyObsArg, PresetArg, TrainDiffusionArgs, TrainEncoderArgs};
+use crate::progress::Bar;
 
 /// The preset for `obs`, with the fields of the JSON file `overrides` replaced.
 fn preset_config(
@@ -40,27 +41,6 @@ fn preset_config(
     Ok(config)
 }
 
-/// A training progress bar of `steps` steps (hidden without a terminal).
-fn train_bar(cli: &Cli, steps: usize) -> ProgressBar {
-    let show =
-        !cli.no_progress && !cli.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let bar = ProgressBar::with_draw_target(
-        Some(steps as u64),
-        if show {
-            ProgressDrawTarget::stderr()
-        } else {
-            ProgressDrawTarget::hidden()
-        },
-    );
-    bar.set_style(
-        ProgressStyle::with_template(
-            "train [{elapsed_precise}] {wide_bar} {pos}/{len} {msg} ({eta} left)",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    bar
-}
-
 /// `mte train diffusion`
 pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
     let obs = match a.obs {
@@ -78,7 +58,7 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         freeze_encoder: a.freeze_encoder,
         ..TrainConfig::default()
     };
-    let bar = train_bar(cli, a.steps);
+    let bar = Bar::for_cli(cli, "train", a.steps);
     let report = train(
         &config,
         &tc,
@@ -86,13 +66,11 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         &a.out,
         &Device::Cpu,
         &|step, loss, lr| {
-            bar.set_position(step as u64);
-            if step % 10 == 0 {
-                bar.set_message(format!("loss {loss:.4} lr {lr:.2e}"));
-            }
+            let figure = (step % 10 == 0).then(|| format!("loss {loss:.4} lr {lr:.2e}"));
+            bar.set(step as u64, figure);
         },
     )?;
-    bar.finish_and_clear();
+    bar.finish();
     let mut out = std::io::stdout().lock();
     match cli.format {
         Format::Json => writeln!(out, "{}", serde_json::to_string(&report)?)?,
@@ -124,15 +102,13 @@ pub fn encoder(cli: &Cli, a: &TrainEncoderArgs) -> Result<()> {
         seed: a.seed,
         ..EncoderPretrainConfig::default()
     };
-    let bar = train_bar(cli, a.steps);
+    let bar = Bar::for_cli(cli, "train", a.steps);
     let (weights, report) =
         pretrain_encoder(&config, &pc, &data, &Device::Cpu, &|step, loss, lr| {
-            bar.set_position(step as u64);
-            if step % 10 == 0 {
-                bar.set_message(format!("loss {loss:.4} lr {lr:.2e}"));
-            }
+            let figure = (step % 10 == 0).then(|| format!("loss {loss:.4} lr {lr:.2e}"));
+            bar.set(step as u64, figure);
         })?;
-    bar.finish_and_clear();
+    bar.finish();
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let path = a.out.join("encoder.safetensors");
     candle_core::safetensors::save(&weights, &path)

@@ -829,16 +829,10 @@ fn main_rows(
     (baseline, robust): (&str, &str),
     notes: &mut Vec<String>,
 ) -> Result<Vec<MainRow>, ReportError> {
-    let clean_of = |ci: usize| -> Option<usize> {
-        let s = cells[ci].spec;
-        cells
-            .iter()
-            .position(|c| c.is_clean() && c.spec.policy == s.policy && c.spec.h == s.h)
-    };
     let mut main = Vec::new();
     for &ci in corrupted {
         let c = &cells[ci];
-        let clean_cell = clean_of(ci).map(|cj| &cells[cj]);
+        let clean_cell = clean_of(cells, ci).map(|cj| &cells[cj]);
         let clean = match clean_cell {
             Some(cc) => clean_ref(cc, baseline)?,
             None => None,
@@ -1199,14 +1193,28 @@ fn plots(
     main: &[MainRow],
 ) -> Result<Vec<PlotSpec>, ReportError> {
     let mut taken = HashSet::new();
-    let mut specs = Vec::new();
-    let clean_of = |ci: usize| -> Option<usize> {
-        let s = cells[ci].spec;
-        cells
-            .iter()
-            .position(|c| c.is_clean() && c.spec.policy == s.policy && c.spec.h == s.h)
-    };
+    let mut specs = coverage_plots(cells, corrupted, &mut taken)?;
+    specs.extend(recovered_plots(
+        cells, corrupted, baseline, main, &mut taken,
+    )?);
+    Ok(specs)
+}
 
+/// The clean cell of the same policy and h as cell `ci`.
+fn clean_of(cells: &[CellData<'_>], ci: usize) -> Option<usize> {
+    let s = cells[ci].spec;
+    cells
+        .iter()
+        .position(|c| c.is_clean() && c.spec.policy == s.policy && c.spec.h == s.h)
+}
+
+/// Plots (a): coverage and success against q, per (policy, fault, schedule kind, h).
+fn coverage_plots(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    taken: &mut HashSet<String>,
+) -> Result<Vec<PlotSpec>, ReportError> {
+    let mut specs = Vec::new();
     // (a) Coverage and success against q, per (policy, fault, schedule kind, h).
     // Key: (policy, fault, schedule kind, h); value: member cells.
     type QGroup = ((String, String, String, usize), Vec<usize>);
@@ -1227,7 +1235,7 @@ fn plots(
     for ((policy, fault, kind, h), members) in &groups {
         let mut points: Vec<(usize, usize)> =
             members.iter().map(|&ci| (cells[ci].spec.q(), ci)).collect();
-        if let Some(cj) = clean_of(members[0]) {
+        if let Some(cj) = clean_of(cells, members[0]) {
             points.push((0, cj));
         }
         points.sort_by_key(|&(q, ci)| (q, ci));
@@ -1274,7 +1282,7 @@ fn plots(
         );
         let x_label = "q (corrupted queries per period)".to_string();
         specs.push(PlotSpec {
-            name: unique(&mut taken, format!("coverage-{stem}")),
+            name: unique(taken, format!("coverage-{stem}")),
             title: cov_title,
             x_label: x_label.clone(),
             y_label: "mean max coverage (± SE)".into(),
@@ -1284,7 +1292,7 @@ fn plots(
             series: cov,
         });
         specs.push(PlotSpec {
-            name: unique(&mut taken, format!("success-{stem}")),
+            name: unique(taken, format!("success-{stem}")),
             title: succ_title,
             x_label,
             y_label: "success rate (± binomial SE)".into(),
@@ -1295,6 +1303,19 @@ fn plots(
         });
     }
 
+    Ok(specs)
+}
+
+/// Plots (b): the recovered fraction against the attack budget (or q), per (policy, fault
+/// kind, h); only cells whose denominator is significantly above zero.
+fn recovered_plots(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    baseline: &str,
+    main: &[MainRow],
+    taken: &mut HashSet<String>,
+) -> Result<Vec<PlotSpec>, ReportError> {
+    let mut specs = Vec::new();
     // (b) Recovered fraction against the attack budget (or q), per (policy, fault kind, h).
     let mut groups: Vec<((String, String, usize), Vec<usize>)> = Vec::new();
     for &ci in corrupted {
@@ -1382,7 +1403,7 @@ fn plots(
         let label = policy_label(policy);
         specs.push(PlotSpec {
             name: unique(
-                &mut taken,
+                taken,
                 format!("recovered-{}", slug(&format!("{label}-{kind}-h{h}"))),
             ),
             title: format!("Recovered fraction vs {baseline}, {label}: {kind}, h = {h}"),

@@ -417,44 +417,7 @@ pub fn train(
     let varmap = VarMap::new();
     let vb = crate::init::seeded_var_builder(&varmap, train.seed, DType::F32, device);
     let policy = DiffusionPolicy::new(config.clone(), data.stats.clone(), vb)?;
-    let mut step = 0usize;
-    let state_path = out.join("training_state.json");
-    let mut ema: Option<HashMap<String, Tensor>> = None;
-    if let (Some(init), false) = (&train.init, state_path.exists()) {
-        load_init(&varmap, init, device)?;
-    }
-    if state_path.exists() {
-        let text = std::fs::read_to_string(&state_path).map_err(|source| PolicyError::Io {
-            path: state_path.clone(),
-            source,
-        })?;
-        let st: serde_json::Value =
-            serde_json::from_str(&text).map_err(|source| PolicyError::Json {
-                path: state_path.clone(),
-                source,
-            })?;
-        step = st["step"].as_u64().unwrap_or(0) as usize;
-        let raw = out.join("raw_model.safetensors");
-        let tensors = candle_core::safetensors::load(&raw, device)?;
-        for (name, var) in varmap
-            .data()
-            .lock()
-            .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?
-            .iter()
-        {
-            let t = tensors.get(name).ok_or_else(|| PolicyError::Checkpoint {
-                path: raw.clone(),
-                reason: format!("missing {name}"),
-            })?;
-            var.set(t)?;
-        }
-        if train.ema_max_decay.is_some() {
-            ema = Some(candle_core::safetensors::load(
-                out.join(checkpoint::WEIGHTS),
-                device,
-            )?);
-        }
-    }
+    let (mut step, mut ema) = start_or_resume(&varmap, train, out, device)?;
     // Every variable (EMA, checkpoints) and the optimised ones (all but a frozen encoder).
     let all_vars = sorted_vars(&varmap, |_| true)?;
     let vars: Vec<(String, Var)> = all_vars
@@ -529,23 +492,7 @@ pub fn train(
         };
         let loss = policy.loss(&cond, &x0, &eps, &ts, None)?;
         let mut grads = loss.backward()?;
-        // Global gradient-norm clipping.
-        let mut sq = 0f64;
-        for (_, v) in &vars {
-            if let Some(g) = grads.get(v.as_tensor()) {
-                sq += f64::from(g.sqr()?.sum_all()?.to_scalar::<f32>()?);
-            }
-        }
-        let norm = sq.sqrt();
-        if norm > train.grad_clip {
-            let scale = train.grad_clip / (norm + 1e-6);
-            for (_, v) in &vars {
-                if let Some(g) = grads.get(v.as_tensor()) {
-                    let g = (g * scale)?.detach();
-                    grads.insert(v.as_tensor(), g);
-                }
-            }
-        }
+        clip_gradients(&mut grads, &vars, train.grad_clip)?;
         let lr = learning_rate(
             config.optimizer_lr,
             config.scheduler_warmup_steps,
@@ -555,15 +502,11 @@ pub fn train(
         opt.set_learning_rate(lr);
         opt.step(&grads)?;
         if let (Some(max), Some(e)) = (train.ema_max_decay, ema.as_mut()) {
-            let decay = max.min((1.0 + step as f64) / (10.0 + step as f64));
-            for (k, v) in &vars {
-                if let Some(prev) = e.get_mut(k) {
-                    // detach: otherwise every EMA tensor keeps the previous one alive through
-                    // the autograd graph, and memory grows by a model copy per step.
-                    *prev =
-                        ((&*prev * decay)? + (v.as_tensor().detach() * (1.0 - decay))?)?.detach();
-                }
-            }
+            ema_update(
+                e,
+                &vars,
+                max.min((1.0 + step as f64) / (10.0 + step as f64)),
+            )?;
         }
         let l = loss.to_scalar::<f32>()?;
         if !l.is_finite() {
@@ -582,42 +525,14 @@ pub fn train(
         if (train.checkpoint_every > 0 && step.is_multiple_of(train.checkpoint_every))
             || step == train.steps
         {
-            let weights: HashMap<String, Tensor> = match &ema {
-                Some(e) => e.clone(),
-                None => all_vars
-                    .iter()
-                    .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
-                    .collect(),
+            let saved = Saved {
+                config,
+                train,
+                stats: &data.stats,
+                all_vars: &all_vars,
+                ema: ema.as_ref(),
             };
-            let raw: HashMap<String, Tensor> = all_vars
-                .iter()
-                .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
-                .collect();
-            let dirs: Vec<PathBuf> = if step == train.steps {
-                vec![out.to_path_buf()]
-            } else {
-                vec![
-                    out.to_path_buf(),
-                    out.join("checkpoints").join(format!("{step:06}")),
-                ]
-            };
-            for d in dirs {
-                checkpoint::save(&d, config, &weights, &data.stats)?;
-                candle_core::safetensors::save(&raw, d.join("raw_model.safetensors"))?;
-                let st = serde_json::json!({
-                    "step": step,
-                    "train": train,
-                    "ema": train.ema_max_decay.is_some(),
-                    "note": "model.safetensors holds the EMA weights (the policy); raw_model.safetensors the optimised ones. AdamW moments are not saved: a resumed run re-estimates them.",
-                });
-                let p = d.join("training_state.json");
-                std::fs::write(&p, serde_json::to_string_pretty(&st).unwrap_or_default()).map_err(
-                    |source| PolicyError::Io {
-                        path: p.clone(),
-                        source,
-                    },
-                )?;
-            }
+            saved.write(out, step)?;
         }
     }
     let final_loss = if recent.is_empty() {
@@ -631,6 +546,143 @@ pub fn train(
         final_loss,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// Fresh weights (from `train.init` when given) at step 0, or the state of an interrupted
+/// run in `out` (its raw weights, and its EMA weights when the run keeps an EMA).
+fn start_or_resume(
+    varmap: &VarMap,
+    train: &TrainConfig,
+    out: &Path,
+    device: &Device,
+) -> Result<(usize, Option<HashMap<String, Tensor>>), PolicyError> {
+    let state_path = out.join("training_state.json");
+    if !state_path.exists() {
+        if let Some(init) = &train.init {
+            load_init(varmap, init, device)?;
+        }
+        return Ok((0, None));
+    }
+    let text = std::fs::read_to_string(&state_path).map_err(|source| PolicyError::Io {
+        path: state_path.clone(),
+        source,
+    })?;
+    let st: serde_json::Value =
+        serde_json::from_str(&text).map_err(|source| PolicyError::Json {
+            path: state_path.clone(),
+            source,
+        })?;
+    let step = st["step"].as_u64().ok_or_else(|| PolicyError::Checkpoint {
+        path: state_path.clone(),
+        reason: "no integer `step`".into(),
+    })? as usize;
+    let raw = out.join("raw_model.safetensors");
+    let tensors = candle_core::safetensors::load(&raw, device)?;
+    for (name, var) in varmap
+        .data()
+        .lock()
+        .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?
+        .iter()
+    {
+        let t = tensors.get(name).ok_or_else(|| PolicyError::Checkpoint {
+            path: raw.clone(),
+            reason: format!("missing {name}"),
+        })?;
+        var.set(t)?;
+    }
+    let ema = match train.ema_max_decay {
+        Some(_) => Some(candle_core::safetensors::load(
+            out.join(checkpoint::WEIGHTS),
+            device,
+        )?),
+        None => None,
+    };
+    Ok((step, ema))
+}
+
+/// Global gradient-norm clipping to `max`.
+fn clip_gradients(
+    grads: &mut candle_core::backprop::GradStore,
+    vars: &[(String, Var)],
+    max: f64,
+) -> Result<(), PolicyError> {
+    let mut sq = 0f64;
+    for (_, v) in vars {
+        if let Some(g) = grads.get(v.as_tensor()) {
+            sq += f64::from(g.sqr()?.sum_all()?.to_scalar::<f32>()?);
+        }
+    }
+    let norm = sq.sqrt();
+    if norm > max {
+        let scale = max / (norm + 1e-6);
+        for (_, v) in vars {
+            if let Some(g) = grads.get(v.as_tensor()) {
+                let g = (g * scale)?.detach();
+                grads.insert(v.as_tensor(), g);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// `ema <- decay ema + (1 - decay) weights` for the optimised variables.
+fn ema_update(
+    ema: &mut HashMap<String, Tensor>,
+    vars: &[(String, Var)],
+    decay: f64,
+) -> Result<(), PolicyError> {
+    for (k, v) in vars {
+        if let Some(prev) = ema.get_mut(k) {
+            // detach: otherwise every EMA tensor keeps the previous one alive through the
+            // autograd graph, and memory grows by a model copy per step.
+            *prev = ((&*prev * decay)? + (v.as_tensor().detach() * (1.0 - decay))?)?.detach();
+        }
+    }
+    Ok(())
+}
+
+/// What a checkpoint of a training run holds.
+struct Saved<'a> {
+    config: &'a DiffusionConfig,
+    train: &'a TrainConfig,
+    stats: &'a StatsMap,
+    all_vars: &'a [(String, Var)],
+    ema: Option<&'a HashMap<String, Tensor>>,
+}
+
+impl Saved<'_> {
+    /// Writes the policy (EMA weights when kept), the raw weights and the training state
+    /// into `out`, and before the last step also into `out/checkpoints/<step>`.
+    fn write(&self, out: &Path, step: usize) -> Result<(), PolicyError> {
+        let raw: HashMap<String, Tensor> = self
+            .all_vars
+            .iter()
+            .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+            .collect();
+        let weights = self.ema.cloned().unwrap_or_else(|| raw.clone());
+        let mut dirs = vec![out.to_path_buf()];
+        if step != self.train.steps {
+            dirs.push(out.join("checkpoints").join(format!("{step:06}")));
+        }
+        for d in dirs {
+            checkpoint::save(&d, self.config, &weights, self.stats)?;
+            candle_core::safetensors::save(&raw, d.join("raw_model.safetensors"))?;
+            let st = serde_json::json!({
+                "step": step,
+                "train": self.train,
+                "ema": self.train.ema_max_decay.is_some(),
+                "note": "model.safetensors holds the EMA weights (the policy); raw_model.safetensors the optimised ones. AdamW moments are not saved: a resumed run re-estimates them.",
+            });
+            let p = d.join("training_state.json");
+            std::fs::write(&p, serde_json::to_string_pretty(&st).unwrap_or_default()).map_err(
+                |source| PolicyError::Io {
+                    path: p.clone(),
+                    source,
+                },
+            )?;
+        }
+        Ok(())
+    }
 }
 
 /// The key prefix of the image encoder's variables.

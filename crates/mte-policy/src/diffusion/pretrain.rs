@@ -114,39 +114,19 @@ pub fn pretrain_encoder(
     config.validate()?;
     pc.validate()?;
     let t0 = std::time::Instant::now();
-    let [c, h, w] = config
-        .image_shape()
-        .ok_or_else(|| config_err("input_features", "no observation.image", "an image policy"))?;
-    let px = data
-        .images
-        .as_ref()
-        .ok_or_else(|| config_err("dataset", "no images", "observation.image frames"))?;
-    let target = data.env_state.as_ref().ok_or_else(|| {
-        config_err(
-            "dataset",
-            "no observation.environment_state",
-            "keypoint targets (generate with --obs keypoints,pixels)",
-        )
-    })?;
-    let frames: usize = data.episode_lengths.iter().sum();
-    if frames == 0 || px.len() != frames * c * h * w || target.len() % frames != 0 {
-        return Err(config_err(
-            "dataset",
-            format!(
-                "{frames} frames, {} pixels, {} targets",
-                px.len(),
-                target.len()
-            ),
-            "one image and one target row per frame",
-        ));
-    }
-    let k = target.len() / frames;
+    let Inputs {
+        px,
+        target,
+        frames,
+        shape: [c, h, w],
+        k,
+    } = Inputs::of(config, data)?;
     let stats = data
         .stats
         .get(TARGET)
         .ok_or_else(|| config_err("stats", "no observation.environment_state", "its min/max"))?;
     let norm = Normalizer::new(TARGET, NormMode::MinMax, stats, k)?;
-    let mut y = target.clone();
+    let mut y = target.to_vec();
     norm.normalize(&mut y);
 
     // Held-out episodes: the last ones.
@@ -223,30 +203,19 @@ pub fn pretrain_encoder(
     }
     let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len().max(1) as f32;
 
-    // Held-out error in dataset units, centre crop (as the policy sees frames at evaluation).
-    let (mut heldout_mae, mut heldout_mae_of_mean) = (None, None);
-    if train_frames < frames {
-        let mut mean_y = vec![0f64; k];
-        for f in 0..train_frames {
-            for (j, m) in mean_y.iter_mut().enumerate() {
-                *m += f64::from(target[f * k + j]) / train_frames as f64;
-            }
-        }
-        let feats = frame_features(&policy, data, train_frames..frames)?;
-        let d = 2 * config.spatial_softmax_num_keypoints;
-        let feats = Tensor::from_vec(feats, (frames - train_frames, d), device)?;
-        let mut pred = head.forward(&feats)?.flatten_all()?.to_vec1::<f32>()?;
-        norm.unnormalize(&mut pred);
-        let (mut err, mut err_mean) = (0f64, 0f64);
-        for (i, p) in pred.iter().enumerate() {
-            let truth = f64::from(target[train_frames * k + i]);
-            err += (f64::from(*p) - truth).abs();
-            err_mean += (mean_y[i % k] - truth).abs();
-        }
-        let n = pred.len() as f64;
-        heldout_mae = Some((err / n) as f32);
-        heldout_mae_of_mean = Some((err_mean / n) as f32);
-    }
+    let (heldout_mae, heldout_mae_of_mean) = if train_frames < frames {
+        let inputs = Inputs {
+            px,
+            target,
+            frames,
+            shape: [c, h, w],
+            k,
+        };
+        let (e, e0) = heldout_error(&policy, &head, data, &inputs, &norm, train_frames)?;
+        (Some(e), Some(e0))
+    } else {
+        (None, None)
+    };
     let weights = vars
         .iter()
         .filter(|(n, _)| n.starts_with(ENCODER_PREFIX))
@@ -264,4 +233,85 @@ pub fn pretrain_encoder(
             seconds: t0.elapsed().as_secs_f64(),
         },
     ))
+}
+
+/// The frames and keypoint targets of a pre-training dataset, checked against each other.
+struct Inputs<'a> {
+    px: &'a [u8],
+    target: &'a [f32],
+    frames: usize,
+    shape: [usize; 3],
+    /// Target values per frame.
+    k: usize,
+}
+
+impl<'a> Inputs<'a> {
+    fn of(config: &DiffusionConfig, data: &'a TrainData) -> Result<Self, PolicyError> {
+        let shape = config.image_shape().ok_or_else(|| {
+            config_err("input_features", "no observation.image", "an image policy")
+        })?;
+        let px = data
+            .images
+            .as_deref()
+            .ok_or_else(|| config_err("dataset", "no images", "observation.image frames"))?;
+        let target = data.env_state.as_deref().ok_or_else(|| {
+            config_err(
+                "dataset",
+                "no observation.environment_state",
+                "keypoint targets (generate with --obs keypoints,pixels)",
+            )
+        })?;
+        let frames: usize = data.episode_lengths.iter().sum();
+        let [c, h, w] = shape;
+        if frames == 0 || px.len() != frames * c * h * w || target.len() % frames != 0 {
+            return Err(config_err(
+                "dataset",
+                format!(
+                    "{frames} frames, {} pixels, {} targets",
+                    px.len(),
+                    target.len()
+                ),
+                "one image and one target row per frame",
+            ));
+        }
+        Ok(Self {
+            px,
+            target,
+            frames,
+            shape,
+            k: target.len() / frames,
+        })
+    }
+}
+
+/// Held-out mean absolute error in dataset units (centre crop, as the policy sees frames at
+/// evaluation) of the regression, and of predicting the training frames' mean.
+fn heldout_error(
+    policy: &DiffusionPolicy,
+    head: &candle_nn::Linear,
+    data: &TrainData,
+    inputs: &Inputs<'_>,
+    norm: &Normalizer,
+    train_frames: usize,
+) -> Result<(f32, f32), PolicyError> {
+    let (target, frames, k) = (inputs.target, inputs.frames, inputs.k);
+    let mut mean_y = vec![0f64; k];
+    for f in 0..train_frames {
+        for (j, m) in mean_y.iter_mut().enumerate() {
+            *m += f64::from(target[f * k + j]) / train_frames as f64;
+        }
+    }
+    let feats = frame_features(policy, data, train_frames..frames)?;
+    let d = 2 * policy.config().spatial_softmax_num_keypoints;
+    let feats = Tensor::from_vec(feats, (frames - train_frames, d), policy.device())?;
+    let mut pred = head.forward(&feats)?.flatten_all()?.to_vec1::<f32>()?;
+    norm.unnormalize(&mut pred);
+    let (mut err, mut err_mean) = (0f64, 0f64);
+    for (i, p) in pred.iter().enumerate() {
+        let truth = f64::from(target[train_frames * k + i]);
+        err += (f64::from(*p) - truth).abs();
+        err_mean += (mean_y[i % k] - truth).abs();
+    }
+    let n = pred.len() as f64;
+    Ok(((err / n) as f32, (err_mean / n) as f32))
 }

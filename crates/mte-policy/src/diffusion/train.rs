@@ -456,41 +456,14 @@ pub fn train(
             "episodes long enough for one window",
         ));
     }
-    let a_dim = config.action_dim()?;
-    let (tp, b) = (config.horizon, train.batch_size);
+    let b = train.batch_size;
     let steps_at_start = step;
     let mut recent = std::collections::VecDeque::new();
     while step < train.steps {
         let mut rng = ChaCha8Rng::seed_from_u64(
             train.seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
         );
-        let mode = if cached.is_some() {
-            Images::Skip
-        } else {
-            Images::Crop
-        };
-        let (obs, x0, frames) = draw_batch(&policy, data, &win, b, &mut rng, mode)?;
-        let eps: Vec<f32> = (0..b * tp * a_dim)
-            .map(|_| StandardNormal.sample(&mut rng))
-            .collect();
-        let ts: Vec<usize> = (0..b)
-            .map(|_| rng.random_range(0..config.num_train_timesteps))
-            .collect();
-        let x0 = Tensor::from_vec(x0, (b, tp, a_dim), device)?;
-        let eps = Tensor::from_vec(eps, (b, tp, a_dim), device)?;
-        let cond = match &cached {
-            Some(feats) => {
-                let d = 2 * config.spatial_softmax_num_keypoints;
-                let rows: Vec<f32> = frames
-                    .iter()
-                    .flat_map(|&f| feats[f * d..(f + 1) * d].iter().copied())
-                    .collect();
-                let rows = Tensor::from_vec(rows, (frames.len(), d), device)?;
-                policy.global_cond_from_features(&obs, Some(&rows))?
-            }
-            None => policy.global_cond_cropped(&obs)?,
-        };
-        let loss = policy.loss(&cond, &x0, &eps, &ts, None)?;
+        let loss = batch_loss(&policy, data, &win, cached.as_deref(), b, &mut rng)?;
         let mut grads = loss.backward()?;
         clip_gradients(&mut grads, &vars, train.grad_clip)?;
         let lr = learning_rate(
@@ -546,6 +519,48 @@ pub fn train(
         final_loss,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// The denoising loss of one training batch of `b` windows drawn with `rng` (noise and
+/// timesteps too); with `cached` frame features, the encoder is skipped.
+fn batch_loss(
+    policy: &DiffusionPolicy,
+    data: &TrainData,
+    win: &Windows,
+    cached: Option<&[f32]>,
+    b: usize,
+    rng: &mut ChaCha8Rng,
+) -> Result<Tensor, PolicyError> {
+    let config = policy.config();
+    let device = policy.device();
+    let (tp, a_dim) = (config.horizon, config.action_dim()?);
+    let mode = if cached.is_some() {
+        Images::Skip
+    } else {
+        Images::Crop
+    };
+    let (obs, x0, frames) = draw_batch(policy, data, win, b, rng, mode)?;
+    let eps: Vec<f32> = (0..b * tp * a_dim)
+        .map(|_| StandardNormal.sample(&mut *rng))
+        .collect();
+    let ts: Vec<usize> = (0..b)
+        .map(|_| rng.random_range(0..config.num_train_timesteps))
+        .collect();
+    let x0 = Tensor::from_vec(x0, (b, tp, a_dim), device)?;
+    let eps = Tensor::from_vec(eps, (b, tp, a_dim), device)?;
+    let cond = match cached {
+        Some(feats) => {
+            let d = 2 * config.spatial_softmax_num_keypoints;
+            let rows: Vec<f32> = frames
+                .iter()
+                .flat_map(|&f| feats[f * d..(f + 1) * d].iter().copied())
+                .collect();
+            let rows = Tensor::from_vec(rows, (frames.len(), d), device)?;
+            policy.global_cond_from_features(&obs, Some(&rows))?
+        }
+        None => policy.global_cond_cropped(&obs)?,
+    };
+    policy.loss(&cond, &x0, &eps, &ts, None)
 }
 
 /// Fresh weights (from `train.init` when given) at step 0, or the state of an interrupted

@@ -2530,7 +2530,11 @@ mod tests {
     #[test]
     fn a_clean_data_gap_between_the_arms_is_named_as_a_confound() {
         let r = build(&manifest(), &lines(), &ReportOptions::default()).unwrap();
-        assert!(!r.notes.iter().any(|n| n.contains("confound")), "{:?}", r.notes);
+        assert!(
+            !r.notes.iter().any(|n| n.contains("confound")),
+            "{:?}",
+            r.notes
+        );
         let mut lines = lines();
         for l in &mut lines {
             if let Line::Episode(e) = l
@@ -2543,7 +2547,11 @@ mod tests {
         let r = build(&manifest(), &lines, &ReportOptions::default()).unwrap();
         let notes: Vec<&String> = r.notes.iter().filter(|n| n.contains("confound")).collect();
         assert_eq!(notes.len(), 1, "{:?}", r.notes);
-        assert!(notes[0].contains(CLEAN) && notes[0].contains("n = 8"), "{}", notes[0]);
+        assert!(
+            notes[0].contains(CLEAN) && notes[0].contains("n = 8"),
+            "{}",
+            notes[0]
+        );
     }
 
     #[test]

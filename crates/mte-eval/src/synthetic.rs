@@ -272,8 +272,10 @@ pub fn run(
         "synthetic episodes",
         (cfg.q_values.len() * cfg.episodes) as u64,
     );
-    let mut reference_row = vec![0.0f64; d];
-    let mut chunk = vec![0.0f32; t_p * d];
+    let mut scratch = Scratch {
+        row: vec![0.0f64; d],
+        chunk: vec![0.0f32; t_p * d],
+    };
     for &q in &cfg.q_values {
         let mut errors: Vec<Vec<f64>> = vec![Vec::new(); n_aggs];
         let mut episode_rmse: Vec<Vec<f64>> = vec![Vec::new(); n_aggs];
@@ -282,18 +284,7 @@ pub fn run(
             // The same episode seed for every q: the reference and noise pair across q too.
             let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
             rng.set_stream(episode as u64);
-            let reference = Reference::random(&mut rng, d);
-            let phase = rng.random_range(0..m_min);
-            let direction: Vec<f64> = if d == 1 {
-                vec![if rng.random_bool(0.5) { 1.0 } else { -1.0 }]
-            } else {
-                // A Gaussian vector, normalised: uniform on the sphere for any d.
-                let v: Vec<f64> = (0..d)
-                    .map(|_| rng.sample(rand_distr::StandardNormal))
-                    .collect();
-                let norm = v.iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-12);
-                v.into_iter().map(|x| x / norm).collect()
-            };
+            let draws = EpisodeDraws::draw(&mut rng, d, m_min);
             for e in &mut ensemblers {
                 e.reset();
             }
@@ -301,24 +292,14 @@ pub fn run(
             for tau in 0..cfg.steps {
                 if tau % g.h as u64 == 0 {
                     let i = tau / g.h as u64;
-                    let corrupted = ((i as usize + phase) % m_min) < q;
-                    for k in 0..t_p {
-                        let t = tau as f64 - (g.t_o as f64 - 1.0) + k as f64;
-                        reference.at(t, &mut reference_row);
-                        for j in 0..d {
-                            let mut v = reference_row[j] + noise.sample(&mut rng);
-                            if corrupted {
-                                v += cfg.corruption * direction[j];
-                            }
-                            chunk[k * d + j] = v as f32;
-                        }
-                    }
+                    let corrupted = ((i as usize + draws.phase) % m_min) < q;
+                    draws.chunk(cfg, tau, corrupted, &noise, &mut rng, &mut scratch);
                     for e in &mut ensemblers {
-                        e.insert(tau, &chunk, QueryMeta { corrupted })
+                        e.insert(tau, &scratch.chunk, QueryMeta { corrupted })
                             .map_err(|source| SyntheticError::Ensemble { episode, source })?;
                     }
                 }
-                reference.at(tau as f64, &mut reference_row);
+                draws.reference.at(tau as f64, &mut scratch.row);
                 for (a, e) in ensemblers.iter_mut().enumerate() {
                     let step = e
                         .action(tau)
@@ -329,7 +310,7 @@ pub fn run(
                     let err = step
                         .action
                         .iter()
-                        .zip(&reference_row)
+                        .zip(&scratch.row)
                         .map(|(&x, r)| (x as f64 - r).powi(2))
                         .sum::<f64>()
                         .sqrt();
@@ -368,6 +349,68 @@ pub fn run(
         comparisons,
         m_histogram: m_hist.into_iter().collect(),
     })
+}
+
+/// One synthetic episode's draws, made once per episode in this order: the reference
+/// trajectory, the burst phase, the corruption direction.
+struct EpisodeDraws {
+    reference: Reference,
+    phase: usize,
+    /// Unit vector the corruption pushes along.
+    direction: Vec<f64>,
+}
+
+/// Per-step buffers: one reference row, one chunk.
+struct Scratch {
+    row: Vec<f64>,
+    chunk: Vec<f32>,
+}
+
+impl EpisodeDraws {
+    fn draw(rng: &mut ChaCha8Rng, d: usize, m_min: usize) -> Self {
+        let reference = Reference::random(rng, d);
+        let phase = rng.random_range(0..m_min);
+        let direction: Vec<f64> = if d == 1 {
+            vec![if rng.random_bool(0.5) { 1.0 } else { -1.0 }]
+        } else {
+            // A Gaussian vector, normalised: uniform on the sphere for any d.
+            let v: Vec<f64> = (0..d)
+                .map(|_| rng.sample(rand_distr::StandardNormal))
+                .collect();
+            let norm = v.iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-12);
+            v.into_iter().map(|x| x / norm).collect()
+        };
+        Self {
+            reference,
+            phase,
+            direction,
+        }
+    }
+
+    /// The chunk of the query at `tau` into `scratch.chunk`: the reference plus noise, plus
+    /// the corruption along `direction` when `corrupted`.
+    fn chunk(
+        &self,
+        cfg: &SyntheticConfig,
+        tau: u64,
+        corrupted: bool,
+        noise: &Normal<f64>,
+        rng: &mut ChaCha8Rng,
+        scratch: &mut Scratch,
+    ) {
+        let (g, d) = (cfg.geometry, cfg.dim);
+        for k in 0..g.t_p {
+            let t = tau as f64 - (g.t_o as f64 - 1.0) + k as f64;
+            self.reference.at(t, &mut scratch.row);
+            for j in 0..d {
+                let mut v = scratch.row[j] + noise.sample(rng);
+                if corrupted {
+                    v += cfg.corruption * self.direction[j];
+                }
+                scratch.chunk[k * d + j] = v as f32;
+            }
+        }
+    }
 }
 
 /// Paired tests of every aggregator against the first, per `q`, Holm over the family.

@@ -1,0 +1,241 @@
+//! The report's figures as data: which plots a run gets (coverage and success against `q`,
+//! the recovered fraction against the attack budget) and their series. `plot` draws them.
+
+use super::*;
+
+/// Specs of every plot: coverage and success against `q`, recovered fraction against the
+/// attack budget (or `q`).
+pub(super) fn plots(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    baseline: &str,
+    main: &[MainRow],
+) -> Result<Vec<PlotSpec>, ReportError> {
+    let mut taken = HashSet::new();
+    let mut specs = coverage_plots(cells, corrupted, &mut taken)?;
+    specs.extend(recovered_plots(
+        cells, corrupted, baseline, main, &mut taken,
+    )?);
+    Ok(specs)
+}
+
+/// Plots (a): coverage and success against q, per (policy, fault, schedule kind, h).
+fn coverage_plots(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    taken: &mut HashSet<String>,
+) -> Result<Vec<PlotSpec>, ReportError> {
+    let mut specs = Vec::new();
+    // (a) Coverage and success against q, per (policy, fault, schedule kind, h).
+    // Key: (policy, fault, schedule kind, h); value: member cells.
+    type QGroup = ((String, String, String, usize), Vec<usize>);
+    let mut groups: Vec<QGroup> = Vec::new();
+    for &ci in corrupted {
+        let s = cells[ci].spec;
+        let key = (
+            s.policy.clone(),
+            s.corruption.fault.to_string(),
+            kind_tag(&s.corruption.schedule),
+            s.h,
+        );
+        match groups.iter_mut().find(|(k, _)| *k == key) {
+            Some((_, v)) => v.push(ci),
+            None => groups.push((key, vec![ci])),
+        }
+    }
+    for ((policy, fault, kind, h), members) in &groups {
+        let mut points: Vec<(usize, usize)> =
+            members.iter().map(|&ci| (cells[ci].spec.q(), ci)).collect();
+        if let Some(cj) = clean_of(cells, members[0]) {
+            points.push((0, cj));
+        }
+        points.sort_by_key(|&(q, ci)| (q, ci));
+        let all: Vec<usize> = points.iter().map(|p| p.1).collect();
+        let arms = arms_of(cells, &all);
+        let (mut cov, mut succ) = (Vec::new(), Vec::new());
+        for arm in &arms {
+            let (mut pc, mut ps) = (Vec::new(), Vec::new());
+            for &(q, ci) in &points {
+                let eps = cells[ci].episodes(arm);
+                let what = format!("cell `{}`, arm `{arm}`", cells[ci].spec.id);
+                if let Some(e) = Estimate::of(&coverages(eps), &what)? {
+                    pc.push(Point {
+                        x: q as f64,
+                        y: e.mean,
+                        err: e.se,
+                    });
+                    let rate = success_count(eps) as f64 / eps.len() as f64;
+                    let se = binomial_se(rate, eps.len() as u64).map_err(stats_err(&what))?;
+                    ps.push(Point {
+                        x: q as f64,
+                        y: rate,
+                        err: Some(se),
+                    });
+                }
+            }
+            if !pc.is_empty() {
+                cov.push(Series {
+                    label: arm.clone(),
+                    points: pc,
+                });
+                succ.push(Series {
+                    label: arm.clone(),
+                    points: ps,
+                });
+            }
+        }
+        let label = policy_label(policy);
+        let stem = slug(&format!("{label}-{fault}-{kind}-h{h}"));
+        let title = format!("{label}: {fault} ({kind}), h = {h}");
+        let (cov_title, succ_title) = (
+            format!("Mean max coverage, {title}"),
+            format!("Success rate, {title}"),
+        );
+        let x_label = "q (corrupted queries per period)".to_string();
+        specs.push(PlotSpec {
+            name: unique(taken, format!("coverage-{stem}")),
+            title: cov_title,
+            x_label: x_label.clone(),
+            y_label: "mean max coverage (± SE)".into(),
+            integer_x: true,
+            y_include: (0.0, 1.0),
+            y_refs: vec![],
+            series: cov,
+        });
+        specs.push(PlotSpec {
+            name: unique(taken, format!("success-{stem}")),
+            title: succ_title,
+            x_label,
+            y_label: "success rate (± binomial SE)".into(),
+            integer_x: true,
+            y_include: (0.0, 1.0),
+            y_refs: vec![],
+            series: succ,
+        });
+    }
+
+    Ok(specs)
+}
+
+/// Plots (b): the recovered fraction against the attack budget (or q), per (policy, fault
+/// kind, h); only cells whose denominator is significantly above zero.
+fn recovered_plots(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    baseline: &str,
+    main: &[MainRow],
+    taken: &mut HashSet<String>,
+) -> Result<Vec<PlotSpec>, ReportError> {
+    let mut specs = Vec::new();
+    // (b) Recovered fraction against the attack budget (or q), per (policy, fault kind, h).
+    let mut groups: Vec<((String, String, usize), Vec<usize>)> = Vec::new();
+    for &ci in corrupted {
+        let s = cells[ci].spec;
+        let key = (s.policy.clone(), kind_tag(&s.corruption.fault), s.h);
+        match groups.iter_mut().find(|(k, _)| *k == key) {
+            Some((_, v)) => v.push(ci),
+            None => groups.push((key, vec![ci])),
+        }
+    }
+    let row_of = |ci: usize| main.iter().find(|r| r.cell == cells[ci].spec.id);
+    for ((policy, kind, h), members) in &groups {
+        let budgeted: Vec<usize> = members
+            .iter()
+            .copied()
+            .filter(|&ci| cells[ci].spec.budget().is_some())
+            .collect();
+        let by_budget = budgeted.len() >= 2;
+        let used = if by_budget { &budgeted } else { members };
+        let schedules: Vec<String> = {
+            let mut v: Vec<String> = Vec::new();
+            for &ci in used {
+                let s = schedule_label(cells[ci].spec);
+                if !v.contains(&s) {
+                    v.push(s);
+                }
+            }
+            v
+        };
+        let split = by_budget && schedules.len() > 1;
+        let mut series: Vec<Series> = Vec::new();
+        for arm in arms_of(cells, used).iter().filter(|a| *a != baseline) {
+            for sched in if split {
+                schedules.clone()
+            } else {
+                vec![String::new()]
+            } {
+                let mut pts = Vec::new();
+                for &ci in used {
+                    let c = &cells[ci];
+                    if (split && schedule_label(c.spec) != sched) || !c.has(arm) || !c.has(baseline)
+                    {
+                        continue;
+                    }
+                    let what = format!("cell `{}`, `{arm}` vs `{baseline}`", c.spec.id);
+                    let cmp = compare(c.episodes(baseline), c.episodes(arm), arm, &what)?;
+                    // Only where the denominator is significantly above zero.
+                    let clean_mean = row_of(ci)
+                        .filter(|r| {
+                            r.recovered
+                                .denominator
+                                .is_some_and(|d| d.coverage_meaningful())
+                        })
+                        .and_then(|r| r.clean.as_ref())
+                        .map(|r| r.coverage.mean);
+                    let f = match (clean_mean, cmp.baseline, cmp.other) {
+                        (Some(cl), Some(b), Some(o)) => recovered_fraction(cl, b.mean, o.mean).ok(),
+                        _ => None,
+                    };
+                    let x = if by_budget {
+                        c.spec.budget().unwrap_or(0.0)
+                    } else {
+                        c.spec.q() as f64
+                    };
+                    if let Some(y) = f.filter(|y| y.is_finite()) {
+                        pts.push(Point { x, y, err: None });
+                    }
+                }
+                pts.sort_by(|a, b| a.x.total_cmp(&b.x));
+                if !pts.is_empty() {
+                    series.push(Series {
+                        label: if split {
+                            format!("{arm}, {sched}")
+                        } else {
+                            arm.clone()
+                        },
+                        points: pts,
+                    });
+                }
+            }
+        }
+        if series.is_empty() {
+            continue;
+        }
+        let label = policy_label(policy);
+        specs.push(PlotSpec {
+            name: unique(
+                taken,
+                format!("recovered-{}", slug(&format!("{label}-{kind}-h{h}"))),
+            ),
+            title: format!("Recovered fraction vs {baseline}, {label}: {kind}, h = {h}"),
+            x_label: if by_budget {
+                "attack budget".into()
+            } else {
+                "q (corrupted queries per period)".into()
+            },
+            y_label: "recovered fraction".into(),
+            integer_x: !by_budget,
+            y_include: (0.0, 1.0),
+            y_refs: vec![0.0, 1.0],
+            series,
+        });
+    }
+    Ok(specs)
+}
+
+/// The schedule part of a corruption's text form (`burst-q2`).
+fn schedule_label(s: &CellSpec) -> String {
+    let full = s.corruption.to_string();
+    let fault = format!("{}-", s.corruption.fault);
+    full.strip_prefix(&fault).unwrap_or(&full).to_string()
+}

@@ -22,8 +22,8 @@ use crate::error::{PolicyError, config_err};
 use crate::model::DiffusionPolicy;
 use crate::normalize::{NormMode, Normalizer};
 use crate::train::{
-    Crop, ENCODER_PREFIX, Progress, TrainData, crop_origin, frame_features, learning_rate,
-    push_crop, sorted_vars,
+    Crop, ENCODER_PREFIX, LossTrace, Progress, TrainData, crop_origin, frame_features,
+    learning_rate, push_crop, sorted_vars,
 };
 
 /// The name of the regression target in a dataset.
@@ -114,19 +114,14 @@ pub fn pretrain_encoder(
     config.validate()?;
     pc.validate()?;
     let t0 = std::time::Instant::now();
-    let Inputs {
-        px,
-        target,
-        frames,
-        shape: [c, h, w],
-        k,
-    } = Inputs::of(config, data)?;
+    let inputs = Inputs::of(config, data)?;
+    let (frames, k) = (inputs.frames, inputs.k);
     let stats = data
         .stats
         .get(TARGET)
         .ok_or_else(|| config_err("stats", "no observation.environment_state", "its min/max"))?;
     let norm = Normalizer::new(TARGET, NormMode::MinMax, stats, k)?;
-    let mut y = target.to_vec();
+    let mut y = inputs.target.to_vec();
     norm.normalize(&mut y);
 
     // Held-out episodes: the last ones.
@@ -153,36 +148,20 @@ pub fn pretrain_encoder(
             ..ParamsAdamW::default()
         },
     )?;
-    let (crop_h, crop_w) = config.crop_shape.map_or((h, w), |[a, b]| (a, b));
-    let b = pc.batch_size;
-    let (mut first, mut recent) = (Vec::new(), std::collections::VecDeque::new());
-    let mut imgs = Vec::with_capacity(b * c * crop_h * crop_w);
-    let mut ys = Vec::with_capacity(b * k);
+    let mut batch = Batch::default();
+    let mut trace = LossTrace::default();
     for step in 0..pc.steps {
         let mut rng =
             ChaCha8Rng::seed_from_u64(pc.seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-        imgs.clear();
-        ys.clear();
-        for _ in 0..b {
-            let f = rng.random_range(0..train_frames);
-            let (top, left) =
-                crop_origin([h, w], [crop_h, crop_w], config.crop_is_random, &mut rng);
-            push_crop(
-                px,
-                f,
-                [c, h, w],
-                Crop {
-                    top,
-                    left,
-                    h: crop_h,
-                    w: crop_w,
-                },
-                &mut imgs,
-            );
-            ys.extend_from_slice(&y[f * k..(f + 1) * k]);
-        }
-        let x = Tensor::from_slice(&imgs, (b, c, crop_h, crop_w), device)?;
-        let t = Tensor::from_slice(&ys, (b, k), device)?;
+        inputs.draw(
+            config,
+            &y,
+            train_frames,
+            pc.batch_size,
+            &mut rng,
+            &mut batch,
+        );
+        let (x, t) = batch.tensors(device)?;
         let pred = head.forward(&policy.image_features_cropped(&x)?)?;
         let loss = (pred - t)?.sqr()?.mean_all()?;
         let lr = learning_rate(pc.lr, 100, pc.steps, step);
@@ -192,25 +171,12 @@ pub fn pretrain_encoder(
         if !l.is_finite() {
             return Err(config_err("loss", l, "finite (lower lr)"));
         }
-        if first.len() < 50 {
-            first.push(l);
-        }
-        recent.push_back(l);
-        if recent.len() > 100 {
-            recent.pop_front();
-        }
+        trace.push(l);
         progress(step + 1, l, lr);
     }
     let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len().max(1) as f32;
 
     let (heldout_mae, heldout_mae_of_mean) = if train_frames < frames {
-        let inputs = Inputs {
-            px,
-            target,
-            frames,
-            shape: [c, h, w],
-            k,
-        };
         let (e, e0) = heldout_error(&policy, &head, data, &inputs, &norm, train_frames)?;
         (Some(e), Some(e0))
     } else {
@@ -225,8 +191,8 @@ pub fn pretrain_encoder(
         weights,
         PretrainReport {
             steps: pc.steps,
-            first_loss: mean(&first),
-            final_loss: mean(recent.make_contiguous()),
+            first_loss: mean(trace.first()),
+            final_loss: mean(trace.recent()),
             heldout_episodes: held,
             heldout_mae,
             heldout_mae_of_mean,
@@ -281,6 +247,60 @@ impl<'a> Inputs<'a> {
             shape,
             k: target.len() / frames,
         })
+    }
+}
+
+/// Reused buffers of one pre-training batch: crops (CHW f32) and normalised targets.
+#[derive(Default)]
+struct Batch {
+    imgs: Vec<f32>,
+    ys: Vec<f32>,
+    /// `(b, c, crop_h, crop_w)` of `imgs`.
+    shape: (usize, usize, usize, usize),
+    /// Target values per frame.
+    k: usize,
+}
+
+impl Batch {
+    /// The images `(b, c, crop_h, crop_w)` and targets `(b, k)` on `device`.
+    fn tensors(&self, device: &Device) -> Result<(Tensor, Tensor), PolicyError> {
+        Ok((
+            Tensor::from_slice(&self.imgs, self.shape, device)?,
+            Tensor::from_slice(&self.ys, (self.shape.0, self.k), device)?,
+        ))
+    }
+}
+
+impl Inputs<'_> {
+    /// Draws `b` frames of the first `train_frames` with `rng` (a crop each, at the config's
+    /// crop shape, random or centred) and their rows of `y` into `batch`.
+    fn draw(
+        &self,
+        config: &DiffusionConfig,
+        y: &[f32],
+        train_frames: usize,
+        b: usize,
+        rng: &mut ChaCha8Rng,
+        batch: &mut Batch,
+    ) {
+        let ([c, h, w], k) = (self.shape, self.k);
+        let (crop_h, crop_w) = config.crop_shape.map_or((h, w), |[a, b]| (a, b));
+        batch.imgs.clear();
+        batch.ys.clear();
+        for _ in 0..b {
+            let f = rng.random_range(0..train_frames);
+            let (top, left) = crop_origin([h, w], [crop_h, crop_w], config.crop_is_random, rng);
+            let crop = Crop {
+                top,
+                left,
+                h: crop_h,
+                w: crop_w,
+            };
+            push_crop(self.px, f, self.shape, crop, &mut batch.imgs);
+            batch.ys.extend_from_slice(&y[f * k..(f + 1) * k]);
+        }
+        batch.shape = (b, c, crop_h, crop_w);
+        batch.k = k;
     }
 }
 

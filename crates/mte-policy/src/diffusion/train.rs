@@ -432,22 +432,16 @@ pub fn train(
     } else {
         None
     };
-    if train.ema_max_decay.is_some() && ema.is_none() {
-        ema = Some(
-            all_vars
-                .iter()
-                .map(|(k, v)| Ok((k.clone(), v.as_tensor().detach().copy()?)))
-                .collect::<Result<HashMap<_, _>, PolicyError>>()?,
-        );
-    }
-    let params = ParamsAdamW {
-        lr: config.optimizer_lr,
-        beta1: config.optimizer_betas[0],
-        beta2: config.optimizer_betas[1],
-        eps: config.optimizer_eps,
-        weight_decay: config.optimizer_weight_decay,
-    };
-    let mut opt = AdamW::new(vars.iter().map(|(_, v)| v.clone()).collect(), params)?;
+    let mut opt = AdamW::new(
+        vars.iter().map(|(_, v)| v.clone()).collect(),
+        ParamsAdamW {
+            lr: config.optimizer_lr,
+            beta1: config.optimizer_betas[0],
+            beta2: config.optimizer_betas[1],
+            eps: config.optimizer_eps,
+            weight_decay: config.optimizer_weight_decay,
+        },
+    )?;
     let win = windows(data, config, train.successful_only);
     if win.index.is_empty() {
         return Err(config_err(
@@ -458,7 +452,7 @@ pub fn train(
     }
     let b = train.batch_size;
     let steps_at_start = step;
-    let mut recent = std::collections::VecDeque::new();
+    let mut trace = LossTrace::default();
     while step < train.steps {
         let mut rng = ChaCha8Rng::seed_from_u64(
             train.seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
@@ -489,10 +483,7 @@ pub fn train(
                 "finite (training diverged; lower optimizer_lr)",
             ));
         }
-        recent.push_back(l);
-        if recent.len() > 100 {
-            recent.pop_front();
-        }
+        trace.push(l);
         step += 1;
         progress(step, l, lr);
         if (train.checkpoint_every > 0 && step.is_multiple_of(train.checkpoint_every))
@@ -508,6 +499,7 @@ pub fn train(
             saved.write(out, step)?;
         }
     }
+    let recent = trace.recent();
     let final_loss = if recent.is_empty() {
         f32::NAN
     } else {
@@ -564,7 +556,8 @@ fn batch_loss(
 }
 
 /// Fresh weights (from `train.init` when given) at step 0, or the state of an interrupted
-/// run in `out` (its raw weights, and its EMA weights when the run keeps an EMA).
+/// run in `out` (its raw weights); with the EMA weights when the run keeps an EMA (a copy of
+/// the starting weights for a fresh run).
 fn start_or_resume(
     varmap: &VarMap,
     train: &TrainConfig,
@@ -576,7 +569,16 @@ fn start_or_resume(
         if let Some(init) = &train.init {
             load_init(varmap, init, device)?;
         }
-        return Ok((0, None));
+        let ema = match train.ema_max_decay {
+            Some(_) => Some(
+                sorted_vars(varmap, |_| true)?
+                    .iter()
+                    .map(|(k, v)| Ok((k.clone(), v.as_tensor().detach().copy()?)))
+                    .collect::<Result<HashMap<_, _>, PolicyError>>()?,
+            ),
+            None => None,
+        };
+        return Ok((0, ema));
     }
     let text = std::fs::read_to_string(&state_path).map_err(|source| PolicyError::Io {
         path: state_path.clone(),
@@ -613,6 +615,36 @@ fn start_or_resume(
         None => None,
     };
     Ok((step, ema))
+}
+
+/// The losses of a run: the first 50 and the last 100 steps.
+#[derive(Debug, Default)]
+pub(crate) struct LossTrace {
+    first: Vec<f32>,
+    recent: std::collections::VecDeque<f32>,
+}
+
+impl LossTrace {
+    /// Records one step's loss.
+    pub(crate) fn push(&mut self, l: f32) {
+        if self.first.len() < 50 {
+            self.first.push(l);
+        }
+        self.recent.push_back(l);
+        if self.recent.len() > 100 {
+            self.recent.pop_front();
+        }
+    }
+
+    /// The first (up to) 50 losses.
+    pub(crate) fn first(&self) -> &[f32] {
+        &self.first
+    }
+
+    /// The last (up to) 100 losses.
+    pub(crate) fn recent(&mut self) -> &[f32] {
+        self.recent.make_contiguous()
+    }
 }
 
 /// Global gradient-norm clipping to `max`.

@@ -566,8 +566,10 @@ impl<F: FnMut(&mut CandidatesMut<'_>)> CandidateHook for F {
     }
 }
 
-/// The hook that does nothing.
-struct NoHook;
+/// The hook that does nothing ([`TemporalEnsembler::action`] uses it; the ensembler skips
+/// an inactive hook entirely).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct NoHook;
 
 impl CandidateHook for NoHook {
     fn active(&self) -> bool {

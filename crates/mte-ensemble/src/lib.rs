@@ -90,7 +90,7 @@ pub use aggregate::{
 };
 pub use bracket::{BracketAccumulator, BracketReport, BracketRow};
 pub use ensembler::{
-    CandidateHook, CandidatesMut, EnsemblerOptions, QueryMeta, Regime, Step, StepReport,
+    CandidateHook, CandidatesMut, EnsemblerOptions, NoHook, QueryMeta, Regime, Step, StepReport,
     TemporalEnsembler,
 };
 pub use error::{AggregateError, EnsembleError, GeometryError, ParseAggregatorError};

@@ -31,7 +31,7 @@ use std::time::Instant;
 
 use mte_ensemble::{
     Aggregator, BracketAccumulator, CandidateHook, Candidates, CandidatesMut, ChunkGeometry,
-    EnsembleError, EnsemblerOptions, QueryMeta, TemporalEnsembler,
+    EnsembleError, EnsemblerOptions, NoHook, QueryMeta, TemporalEnsembler,
 };
 use mte_policy::{ChunkPolicy, Observation, PolicyError};
 use mte_sim::{ResetStream, SimError};
@@ -153,7 +153,7 @@ pub fn query_rng(noise_seed: u64, seed: u64, i: u64, purpose: u64) -> ChaCha8Rng
 #[derive(Debug)]
 enum CandidateFault {
     /// Candidates are left as the policy made them.
-    None(Inactive),
+    None(NoHook),
     /// Corrupted candidates are rewritten from the clean bracket (oracle attacks).
     Oracle(OracleHook),
     /// Every candidate is shifted by the same bias while the newest query is corrupted.
@@ -232,15 +232,22 @@ struct ShiftHook {
     on: bool,
 }
 
+impl ShiftHook {
+    /// Adds the bias to one action (its first two coordinates).
+    fn shift(&self, action: &mut [f32]) {
+        for (x, b) in action.iter_mut().zip(self.bias) {
+            *x += b;
+        }
+    }
+}
+
 impl CandidateHook for ShiftHook {
     fn active(&self) -> bool {
         self.on
     }
     fn rewrite(&mut self, set: &mut CandidatesMut<'_>) {
         for i in 0..set.len() {
-            for (x, b) in set.row_mut(i).iter_mut().zip(self.bias) {
-                *x += b;
-            }
+            self.shift(set.row_mut(i));
         }
     }
 }
@@ -248,7 +255,7 @@ impl CandidateHook for ShiftHook {
 impl CandidateFault {
     fn new(spec: &EpisodeSpec<'_>, d: usize, clean: bool) -> Result<Self, RolloutError> {
         Ok(match (&spec.corruption.fault, spec.execution) {
-            _ if clean => Self::None(Inactive),
+            _ if clean => Self::None(NoHook),
             (Fault::Oracle { .. }, Execution::OpenLoop) => {
                 return Err(RolloutError::Config {
                     field: "arm",
@@ -282,7 +289,7 @@ impl CandidateFault {
                     on: false,
                 })
             }
-            _ => Self::None(Inactive),
+            _ => Self::None(NoHook),
         })
     }
 
@@ -300,17 +307,6 @@ impl CandidateFault {
             Self::None(h) => h,
         }
     }
-}
-
-/// A hook that never acts (the ensembler then skips the hook entirely).
-#[derive(Debug)]
-struct Inactive;
-
-impl CandidateHook for Inactive {
-    fn active(&self) -> bool {
-        false
-    }
-    fn rewrite(&mut self, _: &mut CandidatesMut<'_>) {}
 }
 
 fn median(v: &[f32], s: &mut Vec<f32>) -> f32 {
@@ -612,9 +608,7 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
                 if let CandidateFault::CommonMode(s) = &self.candidate_fault
                     && s.on
                 {
-                    for (x, b) in self.out.iter_mut().zip(s.bias) {
-                        *x += b;
-                    }
+                    s.shift(&mut self.out);
                 }
                 StepEvent {
                     tau,

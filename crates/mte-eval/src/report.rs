@@ -841,9 +841,12 @@ fn main_rows(
     notes: &mut Vec<String>,
 ) -> Result<Vec<MainRow>, ReportError> {
     let mut main = Vec::new();
+    // Clean cells whose gap between the arms was tested: once each, not once per row.
+    let mut gap_tested = Vec::new();
     for &ci in corrupted {
         let c = &cells[ci];
-        let clean_cell = clean_of(cells, ci).map(|cj| &cells[cj]);
+        let clean_at = clean_of(cells, ci);
+        let clean_cell = clean_at.map(|cj| &cells[cj]);
         let clean = match clean_cell {
             Some(cc) => clean_ref(cc, baseline)?,
             None => None,
@@ -853,8 +856,12 @@ fn main_rows(
             Some(cc) => clean_ref(cc, robust)?,
             None => None,
         };
-        if let Some(cc) = clean_cell.filter(|cc| cc.has(robust) && cc.has(baseline)) {
-            clean_gap_note(cc, (baseline, robust), notes)?;
+        if let Some(cj) = clean_at.filter(|cj| !gap_tested.contains(cj)) {
+            gap_tested.push(cj);
+            let cc = &cells[cj];
+            if cc.has(robust) && cc.has(baseline) {
+                clean_gap_note(cc, (baseline, robust), notes)?;
+            }
         }
         let comparison = if c.has(baseline) && c.has(robust) {
             let what = format!("cell `{}`, `{robust}` vs `{baseline}`", c.spec.id);
@@ -914,8 +921,8 @@ fn main_rows(
     Ok(main)
 }
 
-/// A note, once per clean cell, when the two arms differ significantly on clean data: the
-/// confound that every comparison and recovered fraction of that policy and h carries.
+/// A note when the two arms differ significantly on the clean cell `clean`: the confound
+/// that every comparison and recovered fraction of that policy and h carries.
 fn clean_gap_note(
     clean: &CellData<'_>,
     (baseline, robust): (&str, &str),
@@ -934,7 +941,10 @@ fn clean_gap_note(
     let (Some(d), Some(p)) = (gap.delta, gap.wilcoxon_p) else {
         return Ok(());
     };
-    let note = format!(
+    if p >= DENOMINATOR_ALPHA {
+        return Ok(());
+    }
+    notes.push(format!(
         "clean-data confound: on the clean cell `{}`, `{robust}` − `{baseline}` = {} (paired \
          Wilcoxon p = {}, n = {}); every difference and recovered fraction of this policy and h \
          includes this gap, which is not robustness (a recovered fraction above 1 comes from it)",
@@ -942,10 +952,7 @@ fn clean_gap_note(
         delta(Some(&d)),
         fmt_p(p),
         gap.n
-    );
-    if p < DENOMINATOR_ALPHA && !notes.contains(&note) {
-        notes.push(note);
-    }
+    ));
     Ok(())
 }
 

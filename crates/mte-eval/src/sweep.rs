@@ -506,10 +506,14 @@ impl TaskContext<'_> {
                 error,
             })
         };
+        // Every policy of the shard was loaded (or failed to) before the tasks ran.
+        let Some(loaded) = self.loaded.get(c.policy.as_str()) else {
+            return Ok(0);
+        };
         let mut ran = 0;
         for &execution in &t.arms {
-            let line = match self.loaded.get(c.policy.as_str()) {
-                Some(Ok(policy)) => {
+            let line = match loaded {
+                Ok(policy) => {
                     let ep = EpisodeSpec {
                         needs: policy.needs(),
                         seed: t.seed,
@@ -529,8 +533,7 @@ impl TaskContext<'_> {
                         Err(e) => error(execution, e.to_string()),
                     }
                 }
-                Some(Err(e)) => error(execution, e.clone()),
-                None => continue,
+                Err(e) => error(execution, e.clone()),
             };
             self.writers.append(t.cell, &line)?;
             self.reporter.advance(1);

@@ -375,8 +375,7 @@ struct Episode<'e, 'p, 's> {
     keep: usize,
     chunk: Vec<f32>,
     out: Vec<f32>,
-    /// Whether the newest query was corrupted, and whether its candidates are flagged.
-    newest_corrupted: bool,
+    /// Whether the newest query's candidates are flagged corrupted.
     newest_flag: [bool; 1],
     steps: usize,
     max_coverage: f64,
@@ -506,7 +505,6 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
             keep,
             chunk: Vec::new(),
             out: vec![0f32; d],
-            newest_corrupted: false,
             newest_flag: [false],
             steps: 0,
             success: false,
@@ -559,7 +557,10 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
                 c
             }
         };
-        self.newest_corrupted = corrupted;
+        // Common-mode bias acts while the newest query is corrupted.
+        if let CandidateFault::CommonMode(s) = &mut self.candidate_fault {
+            s.on = corrupted;
+        }
         self.newest_flag = [corrupted && self.candidate_fault.flags_corrupted()];
         let t = Instant::now();
         if let Executor::Ensemble(e) = &mut self.executor {
@@ -582,9 +583,6 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
         let tau = self.steps as u64;
         let d = self.out.len();
         let t = Instant::now();
-        if let CandidateFault::CommonMode(s) = &mut self.candidate_fault {
-            s.on = self.newest_corrupted;
-        }
         let event = match &mut self.executor {
             Executor::Ensemble(e) => {
                 let s = e.action_with(tau, self.candidate_fault.hook())?;

@@ -360,8 +360,8 @@ mod tests {
         assert_eq!(steps[7].action, Some(vec![8.0]));
     }
 
-    /// Against a naive per-time oracle: every covered time gets the median of the chunks
-    /// covering it, and the gap records tile exactly the uncovered times.
+    /// Against a naive per-time oracle of coverage: every covered time gets an action, and
+    /// the gap records tile exactly the uncovered times.
     #[test]
     fn gap_records_tile_the_uncovered_times() {
         let times = [0u64, 2, 3, 9, 30, 31];

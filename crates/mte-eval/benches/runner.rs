@@ -7,7 +7,7 @@
 //!
 //! `cargo bench -p mte-eval --bench runner`
 
-use mte_eval::corruption::{CorruptionSpec, Fault, Schedule};
+use mte_eval::corruption::{CorruptionSpec, Schedule, SensorFault};
 use mte_eval::pusht::{EpisodeSpec, ObsNeeds, run_episode};
 use mte_policy::{ChunkPolicy, Observation, PolicyError};
 use mte_sim::ResetStream;
@@ -49,7 +49,7 @@ impl ChunkPolicy for Fixed {
 #[divan::bench(args = ["open-loop", "ewm:0.01", "median"], sample_count = 20)]
 fn episode_300_steps(bencher: divan::Bencher, arm: &str) {
     let corruption = CorruptionSpec {
-        fault: Fault::Blank,
+        fault: SensorFault::Blank.into(),
         schedule: Schedule::Burst {
             q: 2,
             phase: 0,

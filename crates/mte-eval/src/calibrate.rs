@@ -11,7 +11,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::Reporter;
-use crate::corruption::{CorruptionSpec, Fault, Schedule};
+use crate::corruption::{CorruptionSpec, Fault, QueryAttack, Schedule};
 use crate::pusht::{EpisodeSpec, Execution, ObsNeeds, RolloutError, run_episode};
 use mte_policy::{ChunkPolicy, PgdConfig};
 use mte_sim::ResetStream;
@@ -152,12 +152,12 @@ pub fn calibrate(
         let mut previous = clean_cov;
         for &iterations in &budgets {
             let corruption = CorruptionSpec {
-                fault: Fault::Pgd(PgdConfig {
+                fault: Fault::Query(QueryAttack::Pgd(PgdConfig {
                     eps: spec.eps,
                     step,
                     iterations,
                     ..PgdConfig::default()
-                }),
+                })),
                 schedule: Schedule::Burst {
                     q: spec.q,
                     phase: 0,

@@ -116,12 +116,32 @@ pub enum OracleMode {
     Drift,
 }
 
-/// What a corrupted query's observation (or its candidates) suffers.
+/// What a corrupted query suffers. Each kind is its own type, and where it acts in an
+/// episode (`crate::episode` names the stages) follows from the variant: a
+/// [`SensorFault`] rewrites the observation window (stage *corrupt*), a [`QueryAttack`]
+/// replaces the query by an attacked one (stage *query*), a [`CandidateCorruption`]
+/// rewrites the ensembler's candidates (stage *ensemble*).
+///
+/// On the wire (sweep specs, run manifests) a fault is one flat object tagged by `kind`
+/// (`{"kind": "blank"}`, `{"kind": "occluder", "size": 24}`), unknown fields rejected.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+#[serde(from = "wire::FaultWire", into = "wire::FaultWire")]
 pub enum Fault {
     /// Nothing (a clean cell).
     None,
+    /// A fault of the camera or of the state estimate.
+    Sensor(SensorFault),
+    /// An attack on the query itself, through the policy's gradient.
+    Query(QueryAttack),
+    /// A corruption of the candidates the ensembler combines.
+    Candidates(CandidateCorruption),
+}
+
+/// A fault of the sensor, acting on the exteroceptive channel (the camera image, or the
+/// block keypoints of a state policy) of a corrupted query's observation window; the
+/// agent's own position is never corrupted.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SensorFault {
     /// Every pixel zero; for a state policy, the keypoints read zero.
     Blank,
     /// The newest frame is replaced by the previous control step's (one missed update).
@@ -147,6 +167,28 @@ pub enum Fault {
         /// Standard deviation.
         sigma: f64,
     },
+    /// A trained physical patch (`mte attack patch`, a directory with `patch.png` and
+    /// `patch.json`) drawn at its world position into every frame of a corrupted query's
+    /// window. Image policies only.
+    Patch {
+        /// The patch directory.
+        path: std::path::PathBuf,
+    },
+}
+
+/// An attack that replaces a corrupted query's chunk by the chunk of an attacked input.
+#[derive(Clone, Debug, PartialEq)]
+pub enum QueryAttack {
+    /// PGD on the policy's own training loss at corrupted queries (`mte_policy::attack`):
+    /// L-infinity `eps` (pixels in `[0, 1]`, or normalised keypoints), sign steps, a budget
+    /// of `iterations`. The attacker is the same whichever arm is deployed.
+    Pgd(mte_policy::PgdConfig),
+}
+
+/// A corruption of the ensembler's candidate set at the control times a corrupted query
+/// covers (applied through `mte_ensemble::CandidateHook` on the real ensembler).
+#[derive(Clone, Debug, PartialEq)]
+pub enum CandidateCorruption {
     /// Common-mode bias: every candidate covering a control time whose newest query is
     /// corrupted is shifted by the same vector (`magnitude` px at `angle_deg`).
     CommonMode {
@@ -154,17 +196,6 @@ pub enum Fault {
         magnitude: f64,
         /// Direction, degrees counter-clockwise from +x.
         angle_deg: f64,
-    },
-    /// PGD on the policy's own training loss at corrupted queries (`mte_policy::attack`):
-    /// L-infinity `eps` (pixels in `[0, 1]`, or normalised keypoints), sign steps, a budget
-    /// of `iterations`. The attacker is the same whichever arm is deployed.
-    Pgd(mte_policy::PgdConfig),
-    /// A trained physical patch (`mte attack patch`, a directory with `patch.png` and
-    /// `patch.json`) drawn at its world position into every frame of a corrupted query's
-    /// window. Image policies only.
-    Patch {
-        /// The patch directory.
-        path: std::path::PathBuf,
     },
     /// Oracle attack confined to the clean bracket: corrupted candidates take the bracket
     /// end that moves the coordinate-wise median farthest.
@@ -174,54 +205,78 @@ pub enum Fault {
     },
 }
 
-/// Where in an episode a fault acts (`crate::episode` names the stages). Every fault has
-/// exactly one site, given by an exhaustive match in [`Fault::site`], so a new fault
-/// cannot be added without saying where it acts.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum FaultSite {
-    /// Nowhere (the clean cell).
-    Nowhere,
-    /// The observation window of a corrupted query (stage *corrupt*): sensor faults and the
-    /// physical patch.
-    Observation,
-    /// The query itself, through the policy's gradient (stage *query*): PGD.
-    Query,
-    /// The candidates of the ensembler (stage *ensemble*): oracle attacks and common-mode
-    /// bias.
-    Candidates,
+impl From<SensorFault> for Fault {
+    fn from(f: SensorFault) -> Self {
+        Self::Sensor(f)
+    }
+}
+
+impl From<QueryAttack> for Fault {
+    fn from(a: QueryAttack) -> Self {
+        Self::Query(a)
+    }
+}
+
+impl From<CandidateCorruption> for Fault {
+    fn from(c: CandidateCorruption) -> Self {
+        Self::Candidates(c)
+    }
 }
 
 impl Fault {
-    /// Where the fault acts.
-    pub fn site(&self) -> FaultSite {
+    /// The sensor fault, if this is one.
+    pub fn sensor(&self) -> Option<&SensorFault> {
         match self {
-            Self::None => FaultSite::Nowhere,
-            Self::Blank
-            | Self::Stale
-            | Self::Frozen
-            | Self::Occluder { .. }
-            | Self::MotionBlur { .. }
-            | Self::GaussianNoise { .. }
-            | Self::Patch { .. } => FaultSite::Observation,
-            Self::Pgd(_) => FaultSite::Query,
-            Self::CommonMode { .. } | Self::Oracle { .. } => FaultSite::Candidates,
+            Self::Sensor(f) => Some(f),
+            _ => None,
         }
     }
 
-    /// Whether the fault acts on observations (else on candidates, the query, or not at all).
-    pub fn is_observation(&self) -> bool {
-        self.site() == FaultSite::Observation
+    /// Strength on the fault's natural axis, for plots against attack budget.
+    pub fn budget(&self) -> Option<f64> {
+        match self {
+            Self::None => None,
+            Self::Sensor(f) => f.budget(),
+            Self::Query(QueryAttack::Pgd(c)) => Some(c.iterations as f64),
+            Self::Candidates(CandidateCorruption::CommonMode { magnitude, .. }) => Some(*magnitude),
+            Self::Candidates(CandidateCorruption::Oracle { .. }) => None,
+        }
     }
 
-    /// Strength on the fault's natural axis, for plots against attack budget.
+    /// Checks parameters.
+    pub fn validate(&self) -> Result<(), CorruptionError> {
+        match self {
+            Self::None | Self::Candidates(CandidateCorruption::Oracle { .. }) => Ok(()),
+            Self::Sensor(f) => f.validate(),
+            Self::Query(QueryAttack::Pgd(c)) => c
+                .validate()
+                .map_err(|e| CorruptionError::new("fault (pgd)", c.iterations, e.to_string())),
+            Self::Candidates(CandidateCorruption::CommonMode {
+                magnitude,
+                angle_deg,
+            }) => {
+                if magnitude.is_finite() && angle_deg.is_finite() {
+                    Ok(())
+                } else {
+                    Err(CorruptionError::new(
+                        "fault.magnitude/angle_deg",
+                        format!("{magnitude}/{angle_deg}"),
+                        "finite numbers",
+                    ))
+                }
+            }
+        }
+    }
+}
+
+impl SensorFault {
+    /// Strength on the fault's natural axis.
     pub fn budget(&self) -> Option<f64> {
         match *self {
             Self::Occluder { size } => Some(size as f64),
             Self::MotionBlur { length } => Some(length as f64),
             Self::GaussianNoise { sigma } => Some(sigma),
-            Self::CommonMode { magnitude, .. } => Some(magnitude),
-            Self::Pgd(ref c) => Some(c.iterations as f64),
-            _ => None,
+            Self::Blank | Self::Stale | Self::Frozen | Self::Patch { .. } => None,
         }
     }
 
@@ -237,17 +292,6 @@ impl Fault {
             Self::GaussianNoise { sigma } if !(sigma.is_finite() && sigma >= 0.0) => Err(
                 CorruptionError::new("fault.sigma", sigma, "a finite value >= 0"),
             ),
-            Self::CommonMode {
-                magnitude,
-                angle_deg,
-            } if !(magnitude.is_finite() && angle_deg.is_finite()) => Err(CorruptionError::new(
-                "fault.magnitude/angle_deg",
-                format!("{magnitude}/{angle_deg}"),
-                "finite numbers",
-            )),
-            Self::Pgd(ref c) => c
-                .validate()
-                .map_err(|e| CorruptionError::new("fault (pgd)", c.iterations, e.to_string())),
             _ => Ok(()),
         }
     }
@@ -257,17 +301,29 @@ impl fmt::Display for Fault {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::None => f.write_str("none"),
+            Self::Sensor(s) => s.fmt(f),
+            Self::Query(QueryAttack::Pgd(c)) => write!(f, "pgd-{}", c.iterations),
+            Self::Candidates(CandidateCorruption::CommonMode {
+                magnitude,
+                angle_deg,
+            }) => write!(f, "common-{magnitude}@{angle_deg}"),
+            Self::Candidates(CandidateCorruption::Oracle { mode }) => match mode {
+                OracleMode::Instant => f.write_str("oracle-inst"),
+                OracleMode::Drift => f.write_str("oracle-drift"),
+            },
+        }
+    }
+}
+
+impl fmt::Display for SensorFault {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
             Self::Blank => f.write_str("blank"),
             Self::Stale => f.write_str("stale"),
             Self::Frozen => f.write_str("frozen"),
             Self::Occluder { size } => write!(f, "occluder-{size}"),
             Self::MotionBlur { length } => write!(f, "blur-{length}"),
             Self::GaussianNoise { sigma } => write!(f, "noise-{sigma}"),
-            Self::CommonMode {
-                magnitude,
-                angle_deg,
-            } => write!(f, "common-{magnitude}@{angle_deg}"),
-            Self::Pgd(c) => write!(f, "pgd-{}", c.iterations),
             Self::Patch { path } => write!(
                 f,
                 "patch-{}",
@@ -276,10 +332,81 @@ impl fmt::Display for Fault {
                     |n| n.to_string_lossy().into()
                 )
             ),
-            Self::Oracle { mode } => match mode {
-                OracleMode::Instant => f.write_str("oracle-inst"),
-                OracleMode::Drift => f.write_str("oracle-drift"),
-            },
+        }
+    }
+}
+
+/// The flat wire form of [`Fault`], unchanged since run files began, so old run
+/// directories and sweep specs still load.
+mod wire {
+    use serde::{Deserialize, Serialize};
+
+    use super::{CandidateCorruption as C, Fault, OracleMode, QueryAttack as Q, SensorFault as S};
+
+    #[derive(Clone, Serialize, Deserialize)]
+    #[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+    pub(super) enum FaultWire {
+        None,
+        Blank,
+        Stale,
+        Frozen,
+        Occluder { size: usize },
+        MotionBlur { length: usize },
+        GaussianNoise { sigma: f64 },
+        CommonMode { magnitude: f64, angle_deg: f64 },
+        Pgd(mte_policy::PgdConfig),
+        Patch { path: std::path::PathBuf },
+        Oracle { mode: OracleMode },
+    }
+
+    impl From<FaultWire> for Fault {
+        fn from(w: FaultWire) -> Self {
+            match w {
+                FaultWire::None => Self::None,
+                FaultWire::Blank => S::Blank.into(),
+                FaultWire::Stale => S::Stale.into(),
+                FaultWire::Frozen => S::Frozen.into(),
+                FaultWire::Occluder { size } => S::Occluder { size }.into(),
+                FaultWire::MotionBlur { length } => S::MotionBlur { length }.into(),
+                FaultWire::GaussianNoise { sigma } => S::GaussianNoise { sigma }.into(),
+                FaultWire::Patch { path } => S::Patch { path }.into(),
+                FaultWire::Pgd(c) => Q::Pgd(c).into(),
+                FaultWire::CommonMode {
+                    magnitude,
+                    angle_deg,
+                } => C::CommonMode {
+                    magnitude,
+                    angle_deg,
+                }
+                .into(),
+                FaultWire::Oracle { mode } => C::Oracle { mode }.into(),
+            }
+        }
+    }
+
+    impl From<Fault> for FaultWire {
+        fn from(f: Fault) -> Self {
+            match f {
+                Fault::None => Self::None,
+                Fault::Sensor(s) => match s {
+                    S::Blank => Self::Blank,
+                    S::Stale => Self::Stale,
+                    S::Frozen => Self::Frozen,
+                    S::Occluder { size } => Self::Occluder { size },
+                    S::MotionBlur { length } => Self::MotionBlur { length },
+                    S::GaussianNoise { sigma } => Self::GaussianNoise { sigma },
+                    S::Patch { path } => Self::Patch { path },
+                },
+                Fault::Query(Q::Pgd(c)) => Self::Pgd(c),
+                Fault::Candidates(C::CommonMode {
+                    magnitude,
+                    angle_deg,
+                }) => Self::CommonMode {
+                    magnitude,
+                    angle_deg,
+                },
+                Fault::Candidates(C::Oracle { mode }) => Self::Oracle { mode },
+            }
         }
     }
 }
@@ -370,17 +497,16 @@ impl CorruptionError {
 /// fault needs across queries (the frozen frame).
 #[derive(Debug, Clone)]
 pub struct ObservationCorruptor {
-    fault: Fault,
-    /// The loaded patch of a [`Fault::Patch`].
+    fault: SensorFault,
+    /// The loaded patch of a [`SensorFault::Patch`].
     patch: Option<mte_sim::Patch>,
     /// Exteroceptive frame held while the camera is frozen.
     frozen: Option<Observation>,
 }
 
 impl ObservationCorruptor {
-    /// A corruptor for `fault` (faults that are not observation faults leave windows as
-    /// they are).
-    pub fn new(fault: Fault) -> Self {
+    /// A corruptor for `fault`.
+    pub fn new(fault: SensorFault) -> Self {
         Self {
             fault,
             patch: None,
@@ -388,9 +514,9 @@ impl ObservationCorruptor {
         }
     }
 
-    /// A corruptor for [`Fault::Patch`] with its patch already loaded
+    /// A corruptor for [`SensorFault::Patch`] with its patch already loaded
     /// ([`crate::patch_file::load`]).
-    pub fn with_patch(fault: Fault, patch: mte_sim::Patch) -> Self {
+    pub fn with_patch(fault: SensorFault, patch: mte_sim::Patch) -> Self {
         Self {
             patch: Some(patch),
             ..Self::new(fault)
@@ -401,8 +527,8 @@ impl ObservationCorruptor {
     /// `length - 1`, frozen: the runner passes the last clean frame separately).
     pub fn frames_needed(&self, t_o: usize) -> usize {
         match self.fault {
-            Fault::Stale => t_o + 1,
-            Fault::MotionBlur { length } => t_o + length.saturating_sub(1),
+            SensorFault::Stale => t_o + 1,
+            SensorFault::MotionBlur { length } => t_o + length.saturating_sub(1),
             _ => t_o,
         }
     }
@@ -423,14 +549,12 @@ impl ObservationCorruptor {
         let n = frames.len();
         debug_assert!(n >= t_o);
         let mut win: Vec<Observation> = frames[n - t_o..].to_vec();
-        if !corrupted || !self.fault.is_observation() {
-            if !corrupted {
-                self.frozen = None;
-            }
+        if !corrupted {
+            self.frozen = None;
             return win;
         }
         match self.fault {
-            Fault::Blank => {
+            SensorFault::Blank => {
                 for o in &mut win {
                     if let Some(img) = o.image.as_mut() {
                         img.fill(0);
@@ -440,11 +564,11 @@ impl ObservationCorruptor {
                     }
                 }
             }
-            Fault::Stale => {
+            SensorFault::Stale => {
                 let prev = &frames[n.saturating_sub(2)];
                 copy_extero(prev, &mut win[t_o - 1]);
             }
-            Fault::Frozen => {
+            SensorFault::Frozen => {
                 // The frame before the burst: the newest frame of the window preceding this
                 // query's newest frame, captured at the first corrupted query.
                 let held = self
@@ -455,7 +579,7 @@ impl ObservationCorruptor {
                     copy_extero(&held, o);
                 }
             }
-            Fault::Patch { .. } => {
+            SensorFault::Patch { .. } => {
                 if let (Some(p), Some((w, h))) = (&self.patch, image_size) {
                     for o in &mut win {
                         if let Some(img) = o.image.as_mut() {
@@ -465,13 +589,13 @@ impl ObservationCorruptor {
                     }
                 }
             }
-            Fault::Occluder { size } => {
+            SensorFault::Occluder { size } => {
                 let (ux, uy) = (rng.random::<f64>(), rng.random::<f64>());
                 for o in &mut win {
                     occlude(o, size, ux, uy, image_size);
                 }
             }
-            Fault::MotionBlur { length } => {
+            SensorFault::MotionBlur { length } => {
                 let angle = rng.random::<f64>() * std::f64::consts::TAU;
                 for (k, o) in win.iter_mut().enumerate() {
                     if let (Some(img), Some((w, h))) = (o.image.as_mut(), image_size) {
@@ -494,7 +618,7 @@ impl ObservationCorruptor {
                     }
                 }
             }
-            Fault::GaussianNoise { sigma } => {
+            SensorFault::GaussianNoise { sigma } => {
                 let img_noise = Normal::new(0.0, sigma * 255.0).ok();
                 let kp_noise = Normal::new(0.0, sigma).ok();
                 for o in &mut win {
@@ -511,7 +635,6 @@ impl ObservationCorruptor {
                     }
                 }
             }
-            Fault::None | Fault::CommonMode { .. } | Fault::Oracle { .. } | Fault::Pgd(_) => {}
         }
         win
     }
@@ -632,7 +755,7 @@ mod tests {
     fn faults_touch_only_the_exteroceptive_channel_of_corrupted_queries() {
         let frames = vec![frame(10, 1.0), frame(20, 2.0), frame(30, 3.0)];
         let mut rng = ChaCha8Rng::seed_from_u64(2);
-        let mut blank = ObservationCorruptor::new(Fault::Blank);
+        let mut blank = ObservationCorruptor::new(SensorFault::Blank);
         let clean = blank.window(&frames, 2, false, Some((8, 8)), &mut rng);
         assert_eq!(clean, frames[1..].to_vec());
         let w = blank.window(&frames, 2, true, Some((8, 8)), &mut rng);
@@ -645,7 +768,7 @@ mod tests {
             );
             assert_eq!(o.state, vec![1.0, 2.0]);
         }
-        let mut stale = ObservationCorruptor::new(Fault::Stale);
+        let mut stale = ObservationCorruptor::new(SensorFault::Stale);
         let w = stale.window(&frames, 2, true, Some((8, 8)), &mut rng);
         assert_eq!(w[1].image, frames[1].image);
         assert_eq!(w[0].image, frames[1].image);
@@ -654,7 +777,7 @@ mod tests {
     #[test]
     fn frozen_camera_holds_the_frame_before_the_burst_until_a_clean_query() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let mut c = ObservationCorruptor::new(Fault::Frozen);
+        let mut c = ObservationCorruptor::new(SensorFault::Frozen);
         let f1 = vec![frame(1, 1.0), frame(2, 2.0), frame(3, 3.0)];
         let w = c.window(&f1, 2, true, Some((8, 8)), &mut rng);
         assert!(w.iter().all(|o| o.image == frame(2, 0.0).image));
@@ -676,7 +799,7 @@ mod tests {
     #[test]
     fn occluder_blacks_out_exactly_a_square() {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let mut c = ObservationCorruptor::new(Fault::Occluder { size: 3 });
+        let mut c = ObservationCorruptor::new(SensorFault::Occluder { size: 3 });
         let frames = vec![frame(200, 100.0), frame(200, 100.0)];
         let w = c.window(&frames, 2, true, Some((8, 8)), &mut rng);
         for o in &w {
@@ -687,7 +810,7 @@ mod tests {
             assert_eq!(zeros, 3 * 3 * 3);
         }
         assert_eq!(w[0].image, w[1].image, "one position per query");
-        assert!(Fault::Occluder { size: 0 }.validate().is_err());
+        assert!(SensorFault::Occluder { size: 0 }.validate().is_err());
     }
 
     #[test]
@@ -695,11 +818,10 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         // 2 x 2 patch at world (256, 256): frame (3, 3) of an 8 x 8 frame.
         let patch = mte_sim::Patch::new(vec![7; 12], 2, [256.0, 256.0]).expect("patch");
-        let fault = Fault::Patch {
+        let fault = SensorFault::Patch {
             path: "p/my-patch".into(),
         };
-        assert!(fault.is_observation());
-        assert_eq!(fault.to_string(), "patch-my-patch");
+        assert_eq!(Fault::from(fault.clone()).to_string(), "patch-my-patch");
         let mut c = ObservationCorruptor::with_patch(fault, patch);
         let frames = vec![frame(200, 100.0), frame(200, 100.0)];
         for o in c.window(&frames, 2, true, Some((8, 8)), &mut rng) {
@@ -721,7 +843,7 @@ mod tests {
     #[test]
     fn motion_blur_preserves_a_flat_image_and_averages_keypoints() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
-        let mut c = ObservationCorruptor::new(Fault::MotionBlur { length: 3 });
+        let mut c = ObservationCorruptor::new(SensorFault::MotionBlur { length: 3 });
         let frames = vec![
             frame(90, 0.0),
             frame(90, 3.0),
@@ -748,7 +870,7 @@ mod tests {
         let frames = vec![frame(250, 0.0), frame(5, 0.0)];
         let run = |seed| {
             let mut rng = ChaCha8Rng::seed_from_u64(seed);
-            ObservationCorruptor::new(Fault::GaussianNoise { sigma: 0.2 }).window(
+            ObservationCorruptor::new(SensorFault::GaussianNoise { sigma: 0.2 }).window(
                 &frames,
                 2,
                 true,
@@ -758,13 +880,58 @@ mod tests {
         };
         assert_eq!(run(7), run(7));
         assert_ne!(run(7), run(8));
-        assert!(Fault::GaussianNoise { sigma: f64::NAN }.validate().is_err());
+        assert!(
+            SensorFault::GaussianNoise { sigma: f64::NAN }
+                .validate()
+                .is_err()
+        );
+    }
+
+    #[test]
+    fn the_flat_wire_form_maps_onto_the_typed_kinds() {
+        let parse = |j: &str| serde_json::from_str::<Fault>(j).map_err(|e| e.to_string());
+        let cases: Vec<(&str, Fault)> = vec![
+            (r#"{"kind":"none"}"#, Fault::None),
+            (r#"{"kind":"blank"}"#, SensorFault::Blank.into()),
+            (r#"{"kind":"frozen"}"#, SensorFault::Frozen.into()),
+            (
+                r#"{"kind":"motion-blur","length":5}"#,
+                SensorFault::MotionBlur { length: 5 }.into(),
+            ),
+            (
+                r#"{"kind":"oracle","mode":"drift"}"#,
+                CandidateCorruption::Oracle {
+                    mode: OracleMode::Drift,
+                }
+                .into(),
+            ),
+            (
+                r#"{"kind":"common-mode","magnitude":8.0,"angle_deg":90.0}"#,
+                CandidateCorruption::CommonMode {
+                    magnitude: 8.0,
+                    angle_deg: 90.0,
+                }
+                .into(),
+            ),
+        ];
+        for (json, want) in cases {
+            assert_eq!(parse(json).as_ref(), Ok(&want), "{json}");
+            let back = serde_json::to_string(&want).unwrap_or_default();
+            assert_eq!(parse(&back).as_ref(), Ok(&want), "{back}");
+        }
+        let pgd = parse(r#"{"kind":"pgd","eps":0.05,"iterations":3}"#);
+        assert!(
+            matches!(pgd, Ok(Fault::Query(QueryAttack::Pgd(ref c))) if c.iterations == 3),
+            "{pgd:?}"
+        );
+        let e = parse(r#"{"kind":"occluder","size":4,"colour":1}"#).expect_err("unknown field");
+        assert!(e.contains("colour"), "{e}");
     }
 
     #[test]
     fn specs_round_trip_and_name_themselves() {
         let s = CorruptionSpec {
-            fault: Fault::Occluder { size: 24 },
+            fault: SensorFault::Occluder { size: 24 }.into(),
             schedule: Schedule::Burst {
                 q: 2,
                 phase: 0,

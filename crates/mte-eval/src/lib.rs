@@ -7,7 +7,9 @@
 //!   seam; [`pusht`]: chunked execution of a policy under corruption ([`corruption`]),
 //!   paired across arms; [`sweep`], [`store`], [`record`]: grids run into resumable run
 //!   directories; [`report`]: paired tests, tables and plots; [`machine`]: the CPU a run ran
-//!   on; [`calibrate`]: PGD budget calibration; [`patch_file`]: trained patches on disk.
+//!   on; [`calibrate`]: PGD budget calibration; [`patch_file`]: trained patches on disk;
+//!   [`train_data`]: the arrays a policy trains, is attacked or fine-tuned on, from a
+//!   dataset.
 //! - [`synthetic`]: a stress test without a simulator. A smooth reference trajectory, a
 //!   chunked "policy" that predicts it with small noise, and a burst schedule that replaces
 //!   `q` of every `M_min` queries with arbitrary values. Every aggregator sees the same
@@ -34,6 +36,7 @@ pub mod report;
 pub mod store;
 pub mod sweep;
 pub mod synthetic;
+pub mod train_data;
 
 /// Progress callbacks for long-running work. All methods default to doing nothing.
 ///

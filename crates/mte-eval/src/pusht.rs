@@ -38,7 +38,10 @@ use mte_sim::{ResetStream, SimError};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::corruption::{CorruptionSpec, Fault, ObservationCorruptor, OracleMode};
+use crate::corruption::{
+    CandidateCorruption, CorruptionSpec, Fault, ObservationCorruptor, OracleMode, QueryAttack,
+    SensorFault,
+};
 use crate::environment::{Environment, PushTEnv};
 use crate::episode::{EpisodeObserver, NoObserver, QueryEvent, StepEvent};
 use crate::record::{EpisodeRecord, StageTimes};
@@ -256,7 +259,7 @@ impl CandidateFault {
     fn new(spec: &EpisodeSpec<'_>, d: usize, clean: bool) -> Result<Self, RolloutError> {
         Ok(match (&spec.corruption.fault, spec.execution) {
             _ if clean => Self::None(NoHook),
-            (Fault::Oracle { .. }, Execution::OpenLoop) => {
+            (Fault::Candidates(CandidateCorruption::Oracle { .. }), Execution::OpenLoop) => {
                 return Err(RolloutError::Config {
                     field: "arm",
                     value: "open-loop".into(),
@@ -264,7 +267,7 @@ impl CandidateFault {
                         .into(),
                 });
             }
-            (Fault::Oracle { mode }, Execution::Ensemble(_)) => {
+            (Fault::Candidates(CandidateCorruption::Oracle { mode }), Execution::Ensemble(_)) => {
                 let mut r = query_rng(spec.noise_seed, spec.seed, 0, 2);
                 Self::Oracle(OracleHook {
                     mode: *mode,
@@ -277,10 +280,10 @@ impl CandidateFault {
                 })
             }
             (
-                Fault::CommonMode {
+                Fault::Candidates(CandidateCorruption::CommonMode {
                     magnitude,
                     angle_deg,
-                },
+                }),
                 _,
             ) => {
                 let a = angle_deg.to_radians();
@@ -367,7 +370,7 @@ struct Episode<'e, 'p, 's> {
     spec: &'s EpisodeSpec<'s>,
     geometry: ChunkGeometry,
     env: &'e mut dyn Environment,
-    corruptor: ObservationCorruptor,
+    corruptor: Option<ObservationCorruptor>,
     candidate_fault: CandidateFault,
     executor: Executor,
     /// The last `keep` observations, oldest first.
@@ -491,7 +494,10 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
             }
         };
         let corruptor = observation_corruptor(spec)?;
-        let keep = corruptor.frames_needed(t_o).max(t_o + 1);
+        let keep = corruptor
+            .as_ref()
+            .map_or(t_o, |c| c.frames_needed(t_o))
+            .max(t_o + 1);
         Ok(Self {
             policy,
             spec,
@@ -538,14 +544,15 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
                 .corruption
                 .schedule
                 .corrupts(i, steps as u64, self.geometry.m_min(), &mut crng);
-        let window =
-            self.corruptor
-                .window(&self.frames, t_o, corrupted, spec.needs.image, &mut crng);
+        let window = match &mut self.corruptor {
+            Some(c) => c.window(&self.frames, t_o, corrupted, spec.needs.image, &mut crng),
+            None => self.frames[self.frames.len() - t_o..].to_vec(),
+        };
         self.times.corruption_s += t.elapsed().as_secs_f64();
         let t = Instant::now();
         let mut srng = query_rng(spec.noise_seed, spec.seed, i, 0);
         self.chunk = match &spec.corruption.fault {
-            Fault::Pgd(cfg) if corrupted => {
+            Fault::Query(QueryAttack::Pgd(cfg)) if corrupted => {
                 let c = mte_policy::attackable(self.policy)?
                     .predict_chunk_attacked(&window, cfg, &mut crng, &mut srng)?;
                 self.times.corruption_s += t.elapsed().as_secs_f64();
@@ -636,12 +643,16 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
     }
 }
 
-/// The arm's observation corruptor (a patch is loaded and checked against the frame here,
-/// not per frame).
-fn observation_corruptor(spec: &EpisodeSpec<'_>) -> Result<ObservationCorruptor, RolloutError> {
-    let fault = &spec.corruption.fault;
-    let Fault::Patch { path } = fault else {
-        return Ok(ObservationCorruptor::new(fault.clone()));
+/// The arm's observation corruptor, if its fault is a sensor fault (a patch is loaded and
+/// checked against the frame here, not per frame).
+fn observation_corruptor(
+    spec: &EpisodeSpec<'_>,
+) -> Result<Option<ObservationCorruptor>, RolloutError> {
+    let Some(fault) = spec.corruption.fault.sensor() else {
+        return Ok(None);
+    };
+    let SensorFault::Patch { path } = fault else {
+        return Ok(Some(ObservationCorruptor::new(fault.clone())));
     };
     let Some((w, h)) = spec.needs.image else {
         return Err(RolloutError::Config {
@@ -658,5 +669,5 @@ fn observation_corruptor(spec: &EpisodeSpec<'_>) -> Result<ObservationCorruptor,
     let (_, patch) =
         crate::patch_file::load(path).map_err(|e| bad_path(format!("a patch directory ({e})")))?;
     patch.origin(w, h).map_err(|e| bad_path(e.to_string()))?;
-    Ok(ObservationCorruptor::with_patch(fault.clone(), patch))
+    Ok(Some(ObservationCorruptor::with_patch(fault.clone(), patch)))
 }

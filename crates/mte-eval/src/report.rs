@@ -1252,7 +1252,7 @@ fn clean_of(cells: &[CellData<'_>], ci: usize) -> Option<usize> {
 mod tests {
     use super::render::{html_inline, s3};
     use super::*;
-    use crate::corruption::{CorruptionSpec, Fault, Schedule};
+    use crate::corruption::{CorruptionSpec, Schedule, SensorFault};
     use crate::record::RUN_FORMAT;
     use mte_ensemble::bracket::RegimeTally;
 
@@ -1295,7 +1295,7 @@ mod tests {
 
     fn blank(q: usize) -> CorruptionSpec {
         CorruptionSpec {
-            fault: Fault::Blank,
+            fault: SensorFault::Blank.into(),
             schedule: Schedule::Burst {
                 q,
                 phase: 0,
@@ -1953,7 +1953,7 @@ mod tests {
     fn recovered_plot_uses_the_attack_budget_when_two_cells_have_one() {
         let mut m = manifest();
         let occluder = |size| CorruptionSpec {
-            fault: Fault::Occluder { size },
+            fault: SensorFault::Occluder { size }.into(),
             schedule: Schedule::Burst {
                 q: 2,
                 phase: 0,

@@ -35,7 +35,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::Reporter;
-use crate::corruption::{CorruptionSpec, Fault, Schedule};
+use crate::corruption::{CorruptionSpec, Fault, Schedule, SensorFault};
 use crate::label::{policy_label, slug};
 use crate::pusht::{EpisodeSpec, Execution, run_episode};
 use crate::record::{CellSpec, ErrorRecord, Line, Manifest, RUN_FORMAT};
@@ -586,7 +586,7 @@ pub fn resolve_policies(spec: &mut SweepSpec, base: &Path) {
         }
     }
     for c in &mut spec.corruptions {
-        if let Fault::Patch { path } = &mut c.fault
+        if let Fault::Sensor(SensorFault::Patch { path }) = &mut c.fault
             && let Some(r) = resolve(path)
         {
             *path = r;

@@ -6,7 +6,9 @@ use std::sync::Mutex;
 
 use mte_ensemble::Regime;
 use mte_eval::Silent;
-use mte_eval::corruption::{CorruptionSpec, Fault, OracleMode, Schedule};
+use mte_eval::corruption::{
+    CandidateCorruption, CorruptionSpec, Fault, OracleMode, QueryAttack, Schedule, SensorFault,
+};
 use mte_eval::pusht::{EpisodeSpec, Execution, ObsNeeds, run_episode};
 use mte_eval::record::{EpisodeRecord, Line};
 use mte_eval::store::{RunDir, read_lines};
@@ -93,7 +95,7 @@ fn spec<'a>(execution: Execution, corruption: &'a CorruptionSpec, h: usize) -> E
 
 fn blank_burst(q: usize) -> CorruptionSpec {
     CorruptionSpec {
-        fault: Fault::Blank,
+        fault: SensorFault::Blank.into(),
         schedule: Schedule::Burst {
             q,
             phase: 0,
@@ -198,7 +200,7 @@ fn the_median_stays_in_the_bracket_where_2q_lt_m_and_the_mean_does_not() -> Test
 fn oracle_attacks_stay_inside_the_bracket_and_need_an_ensembler() -> TestResult {
     for mode in [OracleMode::Instant, OracleMode::Drift] {
         let c = CorruptionSpec {
-            fault: Fault::Oracle { mode },
+            fault: CandidateCorruption::Oracle { mode }.into(),
             schedule: Schedule::Burst {
                 q: 3,
                 phase: 0,
@@ -218,9 +220,9 @@ fn oracle_attacks_stay_inside_the_bracket_and_need_an_ensembler() -> TestResult 
 #[test]
 fn a_patch_needs_an_image_policy_and_an_existing_patch() {
     let c = CorruptionSpec {
-        fault: mte_eval::corruption::Fault::Patch {
+        fault: Fault::Sensor(SensorFault::Patch {
             path: "no/such/patch".into(),
-        },
+        }),
         schedule: mte_eval::corruption::Schedule::Dense { start: 0, end: 5 },
     };
     // NEEDS has no camera: refused before anything runs.
@@ -341,11 +343,11 @@ fn pgd_bursts_attack_a_real_diffusion_policy_reproducibly() -> TestResult {
     use mte_policy::PgdConfig;
     let p = tiny_diffusion_policy()?;
     let pgd = CorruptionSpec {
-        fault: Fault::Pgd(PgdConfig {
+        fault: Fault::Query(QueryAttack::Pgd(PgdConfig {
             iterations: 2,
             samples: 1,
             ..PgdConfig::default()
-        }),
+        })),
         schedule: Schedule::Burst {
             q: 2,
             phase: 0,
@@ -500,10 +502,10 @@ fn observers_see_every_query_and_step_the_record_counts() -> TestResult {
 #[test]
 fn common_mode_bias_shifts_the_candidates_the_aggregator_sees() -> TestResult {
     let shifted = CorruptionSpec {
-        fault: Fault::CommonMode {
+        fault: Fault::Candidates(CandidateCorruption::CommonMode {
             magnitude: 64.0,
             angle_deg: 0.0,
-        },
+        }),
         schedule: Schedule::Dense { start: 0, end: 1 },
     };
     let p = Scripted::new(400.0);

@@ -14,6 +14,7 @@ pub mod geometry;
 pub mod patch;
 pub mod render;
 pub mod rng;
+pub mod rollout;
 pub mod vec_env;
 
 pub use env::{PhysicsConfig, PushT, Snapshot, State, StepInfo};

@@ -4,11 +4,11 @@ use std::io::Write as _;
 use std::time::Instant;
 
 use anyhow::{Context, Result, ensure};
-use rand::{Rng, SeedableRng};
 
+use mte_sim::PushT;
 use mte_sim::expert::{Expert, ExpertConfig};
 use mte_sim::render::Renderer;
-use mte_sim::{PushT, ResetStream};
+use mte_sim::rollout::Driver;
 
 use crate::args::{Cli, Format, SimBenchArgs, SimPolicy, SimRenderArgs, SimRolloutArgs};
 use crate::cmd::media::{Gif, write_png};
@@ -55,15 +55,6 @@ pub fn render(cli: &Cli, a: &SimRenderArgs) -> Result<()> {
     Ok(())
 }
 
-/// One episode's outcome.
-#[derive(serde::Serialize)]
-struct Outcome {
-    seed: u64,
-    success: bool,
-    steps: usize,
-    max_coverage: f64,
-}
-
 /// `mte sim rollout`
 pub fn rollout(cli: &Cli, a: &SimRolloutArgs) -> Result<()> {
     ensure!(a.episodes >= 1, "--episodes must be at least 1");
@@ -73,7 +64,6 @@ pub fn rollout(cli: &Cli, a: &SimRolloutArgs) -> Result<()> {
         "--gif-size {} must be 16..=2048 px",
         a.gif_size
     );
-    let stream: ResetStream = a.stream.into();
     let bar = Bar::new(!cli.no_progress && !cli.quiet);
     use mte_eval::Reporter as _;
     bar.start("episodes", a.episodes as u64);
@@ -83,54 +73,35 @@ pub fn rollout(cli: &Cli, a: &SimRolloutArgs) -> Result<()> {
         Some(p) => Some(Gif::create(p, a.gif_size, a.gif_size, 10)?),
         None => None,
     };
-    let mut renderer = gif.as_ref().map(|_| Renderer::new(mte_sim::GOAL));
+    let mut renderer = Renderer::new(mte_sim::GOAL);
     let mut expert = Expert::new(ExpertConfig::default())?;
+    let driver = match a.policy {
+        SimPolicy::Expert => Driver::Expert,
+        SimPolicy::Random => Driver::Random,
+    };
     for i in 0..a.episodes {
-        let seed = a.seed + i as u64;
         let mut env = PushT::default();
-        env.reset(seed, stream)?;
-        expert.reset();
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-        let mut max_cov = env.coverage();
-        let (mut steps, mut success) = (0, false);
-        let record = i == 0;
-        if record && let (Some(g), Some(r)) = (gif.as_mut(), renderer.as_mut()) {
-            g.push(&r.visualization_with_contacts(
-                &env.scene(),
-                env.contact_segments(),
-                None,
-                a.gif_size,
-                a.gif_size,
-            )?)?;
-        }
-        while steps < a.max_steps {
-            let action = match a.policy {
-                SimPolicy::Expert => expert.act(&env, &mut rng)?,
-                SimPolicy::Random => [rng.random_range(0.0..512.0), rng.random_range(0.0..512.0)],
-            };
-            let info = env.step(action)?;
-            steps += 1;
-            max_cov = max_cov.max(info.coverage);
-            if record && let (Some(g), Some(r)) = (gif.as_mut(), renderer.as_mut()) {
-                g.push(&r.visualization_with_contacts(
-                    &env.scene(),
-                    env.contact_segments(),
-                    Some(action),
-                    a.gif_size,
-                    a.gif_size,
-                )?)?;
+        // Only the first episode is drawn.
+        let frame = |env: &PushT, action: Option<[f64; 2]>| -> Result<()> {
+            if let (0, Some(g)) = (i, gif.as_mut()) {
+                let (scene, contacts) = (env.scene(), env.contact_segments());
+                let size = a.gif_size;
+                g.push(
+                    &renderer.visualization_with_contacts(&scene, contacts, action, size, size)?,
+                )?;
             }
-            if info.is_success {
-                success = true;
-                break;
-            }
-        }
-        out.push(Outcome {
+            Ok(())
+        };
+        let seed = a.seed + i as u64;
+        out.push(mte_sim::rollout::rollout(
+            &mut env,
+            &mut expert,
+            driver,
             seed,
-            success,
-            steps,
-            max_coverage: max_cov,
-        });
+            a.stream.into(),
+            a.max_steps,
+            frame,
+        )?);
         bar.advance(1);
     }
     bar.finish();
@@ -176,34 +147,9 @@ pub fn rollout(cli: &Cli, a: &SimRolloutArgs) -> Result<()> {
 /// `mte sim bench`
 pub fn bench(cli: &Cli, a: &SimBenchArgs) -> Result<()> {
     ensure!(a.steps >= 300, "--steps must be at least 300 (one episode)");
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-    let actions: Vec<[f64; 2]> = (0..a.steps)
-        .map(|_| [rng.random_range(0.0..512.0), rng.random_range(0.0..512.0)])
-        .collect();
     let mut results = Vec::new();
     for pixels in [false, true] {
-        let mut env = PushT::default();
-        let mut r = Renderer::new(env.goal());
-        let mut img = vec![0u8; 96 * 96 * 3];
-        let mut seed = 0;
-        let t0 = Instant::now();
-        for (i, act) in actions.iter().enumerate() {
-            if i % 300 == 0 {
-                seed += 1;
-                env.reset(seed, ResetStream::Pcg64)?;
-            }
-            env.step(*act)?;
-            if pixels {
-                r.observation_with_contacts_into(
-                    &env.scene(),
-                    env.contact_segments(),
-                    96,
-                    96,
-                    &mut img,
-                )?;
-            }
-        }
-        let sps = a.steps as f64 / t0.elapsed().as_secs_f64();
+        let sps = mte_sim::rollout::steps_per_second(a.steps, pixels)?;
         results.push((if pixels { "pixels 96x96" } else { "state" }, sps));
     }
     let mut stdout = std::io::stdout().lock();

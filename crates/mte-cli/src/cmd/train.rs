@@ -4,12 +4,11 @@ use std::io::Write as _;
 
 use anyhow::{Context, Result};
 use candle_core::Device;
-use mte_data::Dataset;
-use mte_data::dataset::names;
 use mte_eval::Reporter as _;
+use mte_eval::train_data;
 use mte_policy::config::{DiffusionConfig, ObsKind};
 use mte_policy::pretrain::{EncoderPretrainConfig, pretrain_encoder};
-use mte_policy::train::{TrainConfig, TrainData, stats_from, train};
+use mte_policy::train::{TrainConfig, TrainData, train};
 
 use crate::args::{Cli, Format, PolicyObsArg, PresetArg, TrainDiffusionArgs, TrainEncoderArgs};
 use crate::progress::Bar;
@@ -94,7 +93,7 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
 /// `mte train encoder`
 pub fn encoder(cli: &Cli, a: &TrainEncoderArgs) -> Result<()> {
     let config = preset_config(a.preset, ObsKind::Image, a.config.as_deref())?;
-    let data = load_data(&a.data, &config, true)?;
+    let data = train_data::load(&a.data, &config, train_data::Extra { keypoints: true })?;
     let pc = EncoderPretrainConfig {
         steps: a.steps,
         batch_size: a.batch_size,
@@ -144,61 +143,5 @@ pub fn encoder(cli: &Cli, a: &TrainEncoderArgs) -> Result<()> {
 /// The arrays a policy of `config` trains (or is attacked / fine-tuned) on, from an
 /// `mte data generate` dataset.
 pub fn load_train_data(dir: &std::path::Path, config: &DiffusionConfig) -> Result<TrainData> {
-    load_data(dir, config, false)
-}
-
-/// [`load_train_data`], also with the keypoints of an image dataset when `keypoints`.
-fn load_data(
-    dir: &std::path::Path,
-    config: &DiffusionConfig,
-    keypoints: bool,
-) -> Result<TrainData> {
-    let ds = Dataset::load(dir).with_context(|| format!("loading dataset {}", dir.display()))?;
-    let need = |name: &str| -> Result<Vec<f32>> {
-        Ok(ds
-            .feature(name)
-            .with_context(|| format!("the policy needs `{name}`: regenerate with --obs"))?
-            .to_vec())
-    };
-    let env_state = if config.image_shape().is_none() || keypoints {
-        Some(need(names::ENV_STATE)?)
-    } else {
-        None
-    };
-    let images = if config.image_shape().is_some() {
-        let shape = &ds
-            .info
-            .features
-            .get(names::IMAGE)
-            .context("the dataset has no images: regenerate with --obs pixels")?
-            .shape;
-        anyhow::ensure!(
-            config.image_shape() == Some([3, shape[0], shape[1]]),
-            "dataset images are {}x{}, the policy expects {:?} (C, H, W)",
-            shape[0],
-            shape[1],
-            config.image_shape()
-        );
-        ds.images.clone()
-    } else {
-        None
-    };
-    let stats = stats_from(ds.stats.iter().map(|(k, s)| {
-        (
-            k.clone(),
-            s.min.clone(),
-            s.max.clone(),
-            s.mean.clone(),
-            s.std.clone(),
-        )
-    }));
-    Ok(TrainData {
-        state: need(names::STATE)?,
-        env_state,
-        images,
-        action: need(names::ACTION)?,
-        episode_lengths: ds.episode_lengths(),
-        episode_success: ds.episodes.iter().map(|e| e.success).collect(),
-        stats,
-    })
+    Ok(train_data::load(dir, config, train_data::Extra::default())?)
 }

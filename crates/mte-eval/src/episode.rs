@@ -17,6 +17,23 @@
 
 use mte_ensemble::{BracketReport, Candidates, StepReport};
 
+use crate::record::StageTimes;
+
+/// A stage whose wall time an episode reports through [`EpisodeObserver::on_stage`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Rendering or reading the observation.
+    Observe,
+    /// The schedule, an observation fault, and an attacked query's optimisation (PGD).
+    Corrupt,
+    /// The policy's forward pass on a clean query.
+    Query,
+    /// Inserting chunks, gathering and aggregating candidates.
+    Ensemble,
+    /// The environment's reset and steps.
+    Step,
+}
+
 /// A query has returned its chunk.
 #[derive(Debug, Clone, Copy)]
 pub struct QueryEvent<'a> {
@@ -52,13 +69,36 @@ pub struct StepEvent<'a> {
     pub bracket: Option<BracketReport>,
 }
 
-/// Watches an episode. Both methods default to doing nothing; they are called on the
+/// Watches an episode. Every method defaults to doing nothing; they are called on the
 /// episode's thread, in time order.
 pub trait EpisodeObserver {
     /// After each query.
     fn on_query(&mut self, _event: &QueryEvent<'_>) {}
     /// After each control step's action is decided, before the environment steps.
     fn on_step(&mut self, _event: &StepEvent<'_>) {}
+    /// After each timed stage, with its wall time in seconds.
+    fn on_stage(&mut self, _stage: Stage, _seconds: f64) {}
+}
+
+/// The observer that sums each stage's wall time into a record's [`StageTimes`] (PGD's
+/// optimisation counts as corruption, not as the policy's time).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct StageTimer {
+    /// The sums so far (`total_s` is the caller's).
+    pub times: StageTimes,
+}
+
+impl EpisodeObserver for StageTimer {
+    fn on_stage(&mut self, stage: Stage, seconds: f64) {
+        let t = &mut self.times;
+        *match stage {
+            Stage::Observe => &mut t.render_s,
+            Stage::Corrupt => &mut t.corruption_s,
+            Stage::Query => &mut t.policy_s,
+            Stage::Ensemble => &mut t.ensemble_s,
+            Stage::Step => &mut t.sim_s,
+        } += seconds;
+    }
 }
 
 /// An observer that watches nothing.

@@ -43,8 +43,8 @@ use crate::corruption::{
     SensorFault,
 };
 use crate::environment::{Environment, PushTEnv};
-use crate::episode::{EpisodeObserver, NoObserver, QueryEvent, StepEvent};
-use crate::record::{EpisodeRecord, StageTimes};
+use crate::episode::{EpisodeObserver, NoObserver, QueryEvent, Stage, StageTimer, StepEvent};
+use crate::record::EpisodeRecord;
 
 /// How chunks become actions.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -356,6 +356,28 @@ impl EpisodeObserver for Recorder {
     }
 }
 
+/// The runner's own observers (the record, the stage timer) and the caller's, told alike.
+struct Watchers<'o> {
+    rec: Recorder,
+    timer: StageTimer,
+    user: &'o mut dyn EpisodeObserver,
+}
+
+impl EpisodeObserver for Watchers<'_> {
+    fn on_query(&mut self, e: &QueryEvent<'_>) {
+        self.rec.on_query(e);
+        self.user.on_query(e);
+    }
+    fn on_step(&mut self, e: &StepEvent<'_>) {
+        self.rec.on_step(e);
+        self.user.on_step(e);
+    }
+    fn on_stage(&mut self, stage: Stage, seconds: f64) {
+        self.timer.on_stage(stage, seconds);
+        self.user.on_stage(stage, seconds);
+    }
+}
+
 /// How the arm turns chunks into actions.
 enum Executor {
     /// `h` actions of the latest chunk.
@@ -383,7 +405,6 @@ struct Episode<'e, 'p, 's> {
     steps: usize,
     max_coverage: f64,
     success: bool,
-    times: StageTimes,
 }
 
 /// Run one episode of one arm. The returned record's `cell` is empty (the caller names it).
@@ -414,23 +435,26 @@ pub fn run_episode_in(
     observer: &mut dyn EpisodeObserver,
 ) -> Result<EpisodeRecord, RolloutError> {
     let t_start = Instant::now();
-    let mut ep = Episode::new(env, policy, spec)?;
-    let mut rec = Recorder::default();
+    let mut w = Watchers {
+        rec: Recorder::default(),
+        timer: StageTimer::default(),
+        user: observer,
+    };
+    let mut ep = Episode::new(env, policy, spec, &mut w)?;
     while ep.steps < spec.max_steps {
-        ep.observe()?;
+        ep.observe(&mut w)?;
         if ep.steps % spec.h == 0 {
-            let event = ep.query()?;
-            rec.on_query(&event);
-            observer.on_query(&event);
+            let event = ep.query(&mut w)?;
+            w.on_query(&event);
         }
-        let event = ep.decide()?;
-        rec.on_step(&event);
-        observer.on_step(&event);
-        if ep.step()? {
+        let event = ep.decide(&mut w)?;
+        w.on_step(&event);
+        if ep.step(&mut w)? {
             break;
         }
     }
-    ep.times.total_s = t_start.elapsed().as_secs_f64();
+    let (rec, mut times) = (w.rec, w.timer.times);
+    times.total_s = t_start.elapsed().as_secs_f64();
     let ensembled = matches!(spec.execution, Execution::Ensemble(_));
     Ok(EpisodeRecord {
         cell: String::new(),
@@ -444,7 +468,7 @@ pub fn run_episode_in(
         m_counts: rec.m_counts,
         q_counts: rec.q_counts,
         bracket: (!spec.corruption.is_clean() && ensembled).then_some(rec.bracket),
-        times: ep.times,
+        times,
     })
 }
 
@@ -454,6 +478,7 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
         env: &'e mut dyn Environment,
         policy: &'p dyn ChunkPolicy,
         spec: &'s EpisodeSpec<'s>,
+        w: &mut dyn EpisodeObserver,
     ) -> Result<Self, RolloutError> {
         let (t_p, t_o, d) = (policy.horizon(), policy.n_obs_steps(), policy.action_dim());
         let h = spec.h;
@@ -467,7 +492,6 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
         spec.corruption.validate()?;
         let geometry = ChunkGeometry { t_p, t_o, h };
         let clean = spec.corruption.is_clean();
-        let mut times = StageTimes::default();
         if env.action_dim() != d {
             return Err(RolloutError::Config {
                 field: "policy",
@@ -477,7 +501,7 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
         }
         let t = Instant::now();
         let score = env.reset(spec.seed)?;
-        times.sim_s += t.elapsed().as_secs_f64();
+        w.on_stage(Stage::Step, t.elapsed().as_secs_f64());
         let candidate_fault = CandidateFault::new(spec, d, clean)?;
         let executor = match spec.execution {
             Execution::OpenLoop => Executor::OpenLoop,
@@ -514,15 +538,14 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
             newest_flag: [false],
             steps: 0,
             success: false,
-            times,
         })
     }
 
     /// Stage *observe*: the current observation joins the history.
-    fn observe(&mut self) -> Result<(), RolloutError> {
+    fn observe(&mut self, w: &mut dyn EpisodeObserver) -> Result<(), RolloutError> {
         let t = Instant::now();
         let o = self.env.observe(self.spec.needs)?;
-        self.times.render_s += t.elapsed().as_secs_f64();
+        w.on_stage(Stage::Observe, t.elapsed().as_secs_f64());
         if self.frames.is_empty() {
             self.frames = vec![o; self.keep];
         } else {
@@ -533,7 +556,7 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
     }
 
     /// Stages *corrupt* and *query*: query `i = steps / h`, its chunk into the executor.
-    fn query(&mut self) -> Result<QueryEvent<'_>, RolloutError> {
+    fn query(&mut self, w: &mut dyn EpisodeObserver) -> Result<QueryEvent<'_>, RolloutError> {
         let spec = self.spec;
         let (steps, t_o) = (self.steps, self.geometry.t_o);
         let i = (steps / spec.h) as u64;
@@ -548,19 +571,19 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
             Some(c) => c.window(&self.frames, t_o, corrupted, spec.needs.image, &mut crng),
             None => self.frames[self.frames.len() - t_o..].to_vec(),
         };
-        self.times.corruption_s += t.elapsed().as_secs_f64();
+        w.on_stage(Stage::Corrupt, t.elapsed().as_secs_f64());
         let t = Instant::now();
         let mut srng = query_rng(spec.noise_seed, spec.seed, i, 0);
         self.chunk = match &spec.corruption.fault {
             Fault::Query(QueryAttack::Pgd(cfg)) if corrupted => {
                 let c = mte_policy::attackable(self.policy)?
                     .predict_chunk_attacked(&window, cfg, &mut crng, &mut srng)?;
-                self.times.corruption_s += t.elapsed().as_secs_f64();
+                w.on_stage(Stage::Corrupt, t.elapsed().as_secs_f64());
                 c
             }
             _ => {
                 let c = self.policy.predict_chunk(&window, &mut srng)?;
-                self.times.policy_s += t.elapsed().as_secs_f64();
+                w.on_stage(Stage::Query, t.elapsed().as_secs_f64());
                 c
             }
         };
@@ -576,7 +599,7 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
             };
             e.insert(steps as u64, &self.chunk, meta)?;
         }
-        self.times.ensemble_s += t.elapsed().as_secs_f64();
+        w.on_stage(Stage::Ensemble, t.elapsed().as_secs_f64());
         Ok(QueryEvent {
             index: i,
             t: steps as u64,
@@ -586,7 +609,7 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
     }
 
     /// Stages *ensemble* and *act*: the action of control time `steps`.
-    fn decide(&mut self) -> Result<StepEvent<'_>, RolloutError> {
+    fn decide(&mut self, w: &mut dyn EpisodeObserver) -> Result<StepEvent<'_>, RolloutError> {
         let tau = self.steps as u64;
         let d = self.out.len();
         let t = Instant::now();
@@ -627,15 +650,15 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
                 }
             }
         };
-        self.times.ensemble_s += t.elapsed().as_secs_f64();
+        w.on_stage(Stage::Ensemble, t.elapsed().as_secs_f64());
         Ok(event)
     }
 
     /// Stage *step*: the environment executes the action; `true` when the episode is over.
-    fn step(&mut self) -> Result<bool, RolloutError> {
+    fn step(&mut self, w: &mut dyn EpisodeObserver) -> Result<bool, RolloutError> {
         let t = Instant::now();
         let outcome = self.env.step(&self.out)?;
-        self.times.sim_s += t.elapsed().as_secs_f64();
+        w.on_stage(Stage::Step, t.elapsed().as_secs_f64());
         self.steps += 1;
         self.max_coverage = self.max_coverage.max(outcome.score);
         self.success = outcome.success;

@@ -447,6 +447,8 @@ type Seen = (u64, usize, usize, Vec<f32>, Vec<f32>);
 struct Watch {
     queries: Vec<(u64, bool, usize)>,
     steps: Vec<Seen>,
+    stages: mte_eval::episode::StageTimer,
+    stage_calls: [usize; 5],
 }
 
 impl mte_eval::episode::EpisodeObserver for Watch {
@@ -457,6 +459,22 @@ impl mte_eval::episode::EpisodeObserver for Watch {
         assert_eq!(e.candidates.len(), e.corrupted.len());
         let first: Vec<f32> = e.candidates.row(0).to_vec();
         self.steps.push((e.tau, e.m, e.q, first, e.action.to_vec()));
+    }
+    fn on_stage(&mut self, stage: mte_eval::episode::Stage, seconds: f64) {
+        use mte_eval::episode::Stage;
+        assert!(
+            seconds >= 0.0 && seconds.is_finite(),
+            "{stage:?}: {seconds}"
+        );
+        let k = match stage {
+            Stage::Observe => 0,
+            Stage::Corrupt => 1,
+            Stage::Query => 2,
+            Stage::Ensemble => 3,
+            Stage::Step => 4,
+        };
+        self.stage_calls[k] += 1;
+        self.stages.on_stage(stage, seconds);
     }
 }
 
@@ -489,6 +507,31 @@ fn observers_see_every_query_and_step_the_record_counts() -> TestResult {
             m_counts[st.1] += 1;
         }
         assert_eq!(m_counts, r.m_counts);
+        // The record's stage times are the sums of what observers were told, per stage.
+        let (t, seen) = (r.times, w.stages.times);
+        assert_eq!(
+            (
+                t.render_s,
+                t.corruption_s,
+                t.policy_s,
+                t.ensemble_s,
+                t.sim_s
+            ),
+            (
+                seen.render_s,
+                seen.corruption_s,
+                seen.policy_s,
+                seen.ensemble_s,
+                seen.sim_s
+            )
+        );
+        // Observe and step once per control step (and the reset), corrupt and query once
+        // per query; the ensemble stage per query and per step.
+        assert_eq!(w.stage_calls[0], r.steps);
+        assert_eq!(w.stage_calls[4], r.steps + 1);
+        assert_eq!((w.stage_calls[1], w.stage_calls[2]), (r.queries, r.queries));
+        assert_eq!(w.stage_calls[3], r.queries + r.steps);
+        assert!(t.total_s >= t.render_s + t.policy_s + t.sim_s);
         // The observed run is the unobserved run.
         let again = run_episode(&Scripted::new(400.0), &s)?;
         assert_eq!((again.max_coverage, again.steps), (r.max_coverage, r.steps));

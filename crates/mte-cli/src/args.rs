@@ -109,6 +109,30 @@ pub struct EvalPolicyArgs {
     /// Seed of the policy's sampling noise.
     #[arg(long, default_value_t = 0)]
     pub noise_seed: u64,
+    /// `independent`: fresh sampling noise per query (as deployed); `fixed`: the same noise
+    /// at every query of an episode (a chunk is then a deterministic function of its
+    /// observations), an analysis control for the clean-data confound.
+    #[arg(long, value_enum, default_value_t = SamplingArg::Independent)]
+    pub sampling: SamplingArg,
+}
+
+/// How sampling noise varies across queries (`mte_eval::pusht::Sampling`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SamplingArg {
+    /// Fresh noise per query.
+    Independent,
+    /// The same noise at every query of an episode.
+    Fixed,
+}
+
+impl From<SamplingArg> for mte_eval::pusht::Sampling {
+    fn from(s: SamplingArg) -> Self {
+        match s {
+            SamplingArg::Independent => Self::Independent,
+            SamplingArg::Fixed => Self::Fixed,
+        }
+    }
 }
 
 /// `mte train ...`

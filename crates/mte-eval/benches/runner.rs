@@ -68,6 +68,7 @@ fn episode_300_steps(bencher: divan::Bencher, arm: &str) {
         execution: arm.parse().expect("arm"),
         corruption: &corruption,
         noise_seed: 0,
+        sampling: Default::default(),
     };
     bencher.bench_local(|| run_episode(&Fixed, &spec).expect("episode"));
 }

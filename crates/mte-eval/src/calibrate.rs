@@ -99,6 +99,7 @@ fn cell(
                 execution: spec.arm,
                 corruption,
                 noise_seed: spec.noise_seed,
+                sampling: Default::default(),
             };
             let r = run_episode(policy, &ep)?;
             reporter.advance(1);

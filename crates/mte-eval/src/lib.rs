@@ -9,7 +9,8 @@
 //!   directories; [`report`]: paired tests, tables and plots; [`machine`]: the CPU a run ran
 //!   on; [`calibrate`]: PGD budget calibration; [`patch_file`]: trained patches on disk;
 //!   [`train_data`]: the arrays a policy trains, is attacked or fine-tuned on, from a
-//!   dataset.
+//!   dataset; [`dispersion`]: how spread the candidates an aggregator combines are (the
+//!   instrument of the clean-data confound).
 //! - [`synthetic`]: a stress test without a simulator. A smooth reference trajectory, a
 //!   chunked "policy" that predicts it with small noise, and a burst schedule that replaces
 //!   `q` of every `M_min` queries with arbitrary values. Every aggregator sees the same
@@ -24,6 +25,7 @@
 
 pub mod calibrate;
 pub mod corruption;
+pub mod dispersion;
 pub mod environment;
 pub mod episode;
 mod label;

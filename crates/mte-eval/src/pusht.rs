@@ -37,6 +37,7 @@ use mte_policy::{ChunkPolicy, Observation, PolicyError};
 use mte_sim::{ResetStream, SimError};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
 
 use crate::corruption::{
     CandidateCorruption, CorruptionSpec, Fault, ObservationCorruptor, OracleMode, QueryAttack,
@@ -134,6 +135,31 @@ pub struct EpisodeSpec<'a> {
     pub corruption: &'a CorruptionSpec,
     /// Seed of the per-query sampling and corruption streams (shared by the arms).
     pub noise_seed: u64,
+    /// How the policy's sampling noise varies across queries.
+    pub sampling: Sampling,
+}
+
+/// How a stochastic policy's sampling noise is drawn across the queries of an episode.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Sampling {
+    /// A fresh noise stream per query, as deployed (every experiment's default).
+    #[default]
+    Independent,
+    /// The same noise stream at every query of an episode, so a chunk is a deterministic
+    /// function of its observation window: an analysis control that removes the
+    /// between-query sampling variability and keeps only what the observation changes.
+    Fixed,
+}
+
+impl Sampling {
+    /// The noise stream index of query `i`.
+    fn stream_of(self, i: u64) -> u64 {
+        match self {
+            Self::Independent => i,
+            Self::Fixed => 0,
+        }
+    }
 }
 
 /// SplitMix64 finaliser: decorrelates structured seeds.
@@ -573,7 +599,7 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
         };
         w.on_stage(Stage::Corrupt, t.elapsed().as_secs_f64());
         let t = Instant::now();
-        let mut srng = query_rng(spec.noise_seed, spec.seed, i, 0);
+        let mut srng = query_rng(spec.noise_seed, spec.seed, spec.sampling.stream_of(i), 0);
         self.chunk = match &spec.corruption.fault {
             Fault::Query(QueryAttack::Pgd(cfg)) if corrupted => {
                 let c = mte_policy::attackable(self.policy)?

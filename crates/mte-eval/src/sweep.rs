@@ -523,6 +523,7 @@ impl TaskContext<'_> {
                         execution,
                         corruption: &c.corruption,
                         noise_seed: self.noise_seed,
+                        sampling: Default::default(),
                     };
                     match run_episode(policy.as_ref(), &ep) {
                         Ok(mut r) => {

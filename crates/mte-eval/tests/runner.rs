@@ -90,6 +90,7 @@ fn spec<'a>(execution: Execution, corruption: &'a CorruptionSpec, h: usize) -> E
         execution,
         corruption,
         noise_seed: 7,
+        sampling: Default::default(),
     }
 }
 

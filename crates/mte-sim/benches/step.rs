@@ -96,3 +96,41 @@ fn pixels_96_uniform_actions(bencher: divan::Bencher) {
         sum
     });
 }
+
+/// One tick of `n` environments: `VecEnv` (the pool from `n >= PARALLEL_MIN_ENVS`) against a
+/// plain loop on one thread, uniform random actions, a reset every 300 ticks.
+#[divan::bench(args = [2, 16])]
+fn vec_env_tick(bencher: divan::Bencher, n: usize) {
+    let mut v = mte_sim::VecEnv::new(n, PhysicsConfig::default());
+    let acts: Vec<Vec<[f64; 2]>> = (0..n as u64).map(uniform_actions).collect();
+    let mut t = 0usize;
+    bencher.counter(ItemsCount::new(n)).bench_local(|| {
+        if t.is_multiple_of(EP_LEN) {
+            let seeds: Vec<u64> = (0..n as u64).map(|i| i + t as u64).collect();
+            v.reset(&seeds, ResetStream::Pcg64).ok();
+        }
+        let a: Vec<[f64; 2]> = acts.iter().map(|e| e[t % EP_LEN]).collect();
+        t += 1;
+        v.step(&a).map(|i| i.len()).unwrap_or(0)
+    });
+}
+
+#[divan::bench(args = [2, 16])]
+fn plain_loop_tick(bencher: divan::Bencher, n: usize) {
+    let mut envs: Vec<PushT> = (0..n).map(|_| PushT::default()).collect();
+    let acts: Vec<Vec<[f64; 2]>> = (0..n as u64).map(uniform_actions).collect();
+    let mut t = 0usize;
+    bencher.counter(ItemsCount::new(n)).bench_local(|| {
+        if t.is_multiple_of(EP_LEN) {
+            for (i, e) in envs.iter_mut().enumerate() {
+                e.reset(i as u64 + t as u64, ResetStream::Pcg64).ok();
+            }
+        }
+        let mut steps = 0;
+        for (e, a) in envs.iter_mut().zip(&acts) {
+            steps += usize::from(e.step(a[t % EP_LEN]).is_ok());
+        }
+        t += 1;
+        steps
+    });
+}

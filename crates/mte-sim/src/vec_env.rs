@@ -5,6 +5,10 @@
 
 use rayon::prelude::*;
 
+/// The fewest environments stepped on the thread pool; fewer run on the calling thread. A
+/// step is about 20 us of physics, and waking the pool's workers costs several times that.
+pub const PARALLEL_MIN_ENVS: usize = 8;
+
 use crate::env::{PhysicsConfig, PushT, State, StepInfo};
 use crate::error::SimError;
 use crate::rng::ResetStream;
@@ -50,9 +54,19 @@ impl VecEnv {
                 envs: self.envs.len(),
             });
         }
+        if !self.parallel() {
+            return self
+                .envs
+                .iter_mut()
+                .zip(seeds)
+                .map(|(e, &s)| e.reset(s, stream))
+                .collect();
+        }
+        let chunk = self.chunk();
         self.envs
             .par_iter_mut()
             .zip(seeds.par_iter())
+            .with_min_len(chunk)
             .map(|(e, &s)| e.reset(s, stream))
             .collect()
     }
@@ -68,10 +82,35 @@ impl VecEnv {
         if let Some(a) = actions.iter().find(|a| !a.iter().all(|v| v.is_finite())) {
             return Err(SimError::NonFiniteAction { action: *a });
         }
+        if !self.parallel() {
+            return self
+                .envs
+                .iter_mut()
+                .zip(actions)
+                .map(|(e, &a)| e.step(a))
+                .collect();
+        }
+        let chunk = self.chunk();
         self.envs
             .par_iter_mut()
             .zip(actions.par_iter())
+            .with_min_len(chunk)
             .map(|(e, &a)| e.step(a))
             .collect()
+    }
+
+    /// Whether a tick is worth the pool: below [`PARALLEL_MIN_ENVS`] environments, or with
+    /// one thread, waking workers costs more than the physics (`benches/step.rs`,
+    /// `vec_env`).
+    fn parallel(&self) -> bool {
+        self.envs.len() >= PARALLEL_MIN_ENVS && rayon::current_num_threads() > 1
+    }
+
+    /// Environments per task: one contiguous block per thread.
+    fn chunk(&self) -> usize {
+        self.envs
+            .len()
+            .div_ceil(rayon::current_num_threads())
+            .max(1)
     }
 }

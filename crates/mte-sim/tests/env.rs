@@ -160,7 +160,8 @@ fn step_info_matches_gym_pusht_semantics() {
 
 #[test]
 fn vec_env_is_independent_of_thread_count() {
-    let seeds: Vec<u64> = (100_000..100_006).collect();
+    // More environments than `PARALLEL_MIN_ENVS`, so the pool runs them.
+    let seeds: Vec<u64> = (100_000..100_020).collect();
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -178,7 +179,22 @@ fn vec_env_is_independent_of_thread_count() {
             out
         })
     };
-    assert_eq!(run(1), run(3));
+    let one = run(1);
+    assert_eq!(one, run(3));
+    // A small batch runs on the calling thread and gives the same steps.
+    let small = {
+        let mut v = VecEnv::new(4, PhysicsConfig::default());
+        v.reset(&seeds[..4], ResetStream::Legacy).expect("reset");
+        let mut out = Vec::new();
+        for t in 0..25 {
+            let actions: Vec<[f64; 2]> = v.envs().iter().map(|e| pushing_actions(e, t)).collect();
+            out.push(v.step(&actions).expect("step"));
+        }
+        out
+    };
+    for (t, (a, b)) in small.iter().zip(&one).enumerate() {
+        assert_eq!(a[..], b[..4], "step {t}");
+    }
     let mut v = VecEnv::new(2, PhysicsConfig::default());
     assert!(matches!(
         v.step(&[[1.0, 1.0]]),

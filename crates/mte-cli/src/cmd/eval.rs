@@ -5,7 +5,8 @@ use std::io::Write as _;
 use anyhow::{Context, Result, ensure};
 use mte_eval::Reporter as _;
 use mte_eval::corruption::CorruptionSpec;
-use mte_eval::pusht::{EpisodeSpec, Execution, run_episode};
+use mte_eval::dispersion::CandidateSpread;
+use mte_eval::pusht::{EpisodeSpec, Execution, run_episode_observed};
 
 use crate::args::{Cli, EvalPolicyArgs, Format};
 use crate::progress::Bar;
@@ -26,6 +27,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
     bar.start("episodes", a.episodes as u64);
     let t0 = std::time::Instant::now();
     let mut out = Vec::new();
+    let mut spread = CandidateSpread::default();
     for i in 0..a.episodes {
         let seed = a.seed + i as u64;
         let spec = EpisodeSpec {
@@ -37,8 +39,9 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
             execution,
             corruption: &CorruptionSpec::CLEAN,
             noise_seed: a.noise_seed,
+            sampling: a.sampling.into(),
         };
-        out.push(run_episode(p.as_ref(), &spec)?);
+        out.push(run_episode_observed(p.as_ref(), &spec, &mut spread)?);
         bar.advance(1);
     }
     bar.finish();
@@ -46,20 +49,42 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
     let succ = out.iter().filter(|o| o.success).count();
     let mean_max = out.iter().map(|o| o.max_coverage).sum::<f64>() / n;
     let secs = t0.elapsed().as_secs_f64();
+    let spread = spread.summary();
     let mut so = std::io::stdout().lock();
     match cli.format {
         Format::Json => writeln!(
             so,
             "{}",
-            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "machine": mte_eval::machine::Machine::detect()})
+            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "execution": a.execution, "stride": a.stride, "sampling": a.sampling, "candidates": spread, "machine": mte_eval::machine::Machine::detect()})
         )?,
-        Format::Text => writeln!(
-            so,
-            "{succ}/{} successful, mean max coverage {mean_max:.3} ({} , h = {}), {secs:.0} s",
-            out.len(),
-            a.execution,
-            a.stride
-        )?,
+        Format::Text => {
+            writeln!(
+                so,
+                "{succ}/{} successful, mean max coverage {mean_max:.3} ({}, h = {}, {} sampling), {secs:.0} s",
+                out.len(),
+                a.execution,
+                a.stride,
+                format!("{:?}", a.sampling).to_lowercase(),
+            )?;
+            if spread.steps > 0 {
+                let ages: Vec<String> = spread.by_age.iter().map(|v| format!("{v:.1}")).collect();
+                writeln!(
+                    so,
+                    "candidates over {} steps (px): spread {:.1}, mean-median {:.1}, mean to nearest {:.1}, \
+                     median to nearest {:.1}, newest to mean {:.1}, newest to median {:.1}, split {:.1}%; \
+                     distance from the newest by age: {}",
+                    spread.steps,
+                    spread.spread,
+                    spread.mean_to_median,
+                    spread.mean_to_nearest,
+                    spread.median_to_nearest,
+                    spread.newest_to_mean,
+                    spread.newest_to_median,
+                    100.0 * spread.split_fraction,
+                    ages.join(", ")
+                )?;
+            }
+        }
     }
     Ok(())
 }

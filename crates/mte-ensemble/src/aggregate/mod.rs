@@ -135,6 +135,9 @@ pub struct Workspace {
     decay_m: f64,
     /// `median_nets[n]`: the pruned median network for `n` rows.
     median_nets: Vec<Vec<(u16, u16)>>,
+    /// Order-preserving keys of one coordinate of every candidate, for sets beyond the
+    /// networks (empty when the capacity is within them).
+    keys: Vec<u32>,
 }
 
 impl Workspace {
@@ -154,11 +157,16 @@ impl Workspace {
             dist: vec![0.0; capacity * capacity],
             score: vec![0.0; capacity],
             keep: vec![false; capacity],
-            acc: vec![0.0; dim],
+            acc: vec![0.0; stride],
             acc2: vec![0.0; dim],
             decay: vec![1.0; capacity],
             decay_m: 0.0,
             median_nets: nets,
+            keys: if capacity > NETWORK_MAX {
+                vec![0; capacity]
+            } else {
+                Vec::new()
+            },
         }
     }
 

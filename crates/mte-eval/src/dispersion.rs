@@ -1,0 +1,239 @@
+//! How the candidates an aggregator combines are spread: an [`EpisodeObserver`] that
+//! measures, per control step, what separates the mean from the median and from the newest
+//! prediction. It is the instrument of the clean-data confound (why the mean of overlapping
+//! chunks can lose on clean episodes): staleness (older candidates were planned from older
+//! states) against multimodality (candidates from different modes of the policy).
+//!
+//! Units: distances are Euclidean over all action coordinates (PushT: pixels of the
+//! 512 x 512 workspace). Candidates are oldest first (`mte_ensemble::Candidates`), so the
+//! newest is the last and a candidate's *age* is its distance in queries from the newest.
+//! Steps with fewer than two candidates are not counted.
+
+use serde::Serialize;
+
+use crate::episode::{EpisodeObserver, StepEvent};
+
+/// The smallest separation (px) of two clusters that counts as a split, a twelfth of the
+/// T block's 120 px bar: smaller gaps are sampling jitter, not a different plan.
+pub const SPLIT_MIN_PX: f64 = 10.0;
+
+/// Accumulates candidate-set statistics over the steps it observes (one or many episodes).
+#[derive(Debug, Clone, Default)]
+pub struct CandidateSpread {
+    steps: u64,
+    spread: f64,
+    mean_to_median: f64,
+    mean_to_nearest: f64,
+    median_to_nearest: f64,
+    newest_to_mean: f64,
+    newest_to_median: f64,
+    split_steps: u64,
+    /// Per age `k >= 1`: the summed distance from the newest candidate, and the count.
+    age: Vec<(f64, u64)>,
+    scratch: Vec<f64>,
+    mean: Vec<f64>,
+    median: Vec<f64>,
+}
+
+/// Means over the observed steps (all distances in action units).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SpreadSummary {
+    /// Steps with at least two candidates.
+    pub steps: u64,
+    /// Root-mean-square distance of the candidates from their coordinate-wise median.
+    pub spread: f64,
+    /// Distance between the uniform mean and the coordinate-wise median.
+    pub mean_to_median: f64,
+    /// Distance from the uniform mean to the nearest candidate (large when the mean falls
+    /// between clusters).
+    pub mean_to_nearest: f64,
+    /// Distance from the coordinate-wise median to the nearest candidate.
+    pub median_to_nearest: f64,
+    /// Distance from the newest candidate to the uniform mean.
+    pub newest_to_mean: f64,
+    /// Distance from the newest candidate to the coordinate-wise median.
+    pub newest_to_median: f64,
+    /// Fraction of steps (with at least three candidates) whose candidates split into two
+    /// groups: along the line through the two farthest candidates, a gap wider than half
+    /// their distance and than [`SPLIT_MIN_PX`].
+    pub split_fraction: f64,
+    /// Mean distance of a candidate of age `k` (queries older than the newest) from the
+    /// newest, for `k = 1, 2, ...` (entry `k - 1`).
+    pub by_age: Vec<f64>,
+}
+
+impl EpisodeObserver for CandidateSpread {
+    fn on_step(&mut self, e: &StepEvent<'_>) {
+        let m = e.candidates.len();
+        if m < 2 {
+            return;
+        }
+        let rows: Vec<&[f32]> = (0..m).map(|i| e.candidates.row(i)).collect();
+        self.centres(&rows);
+        let newest = rows[m - 1];
+        let near = |p: &[f64]| {
+            rows.iter()
+                .map(|r| dist(r, p))
+                .fold(f64::INFINITY, f64::min)
+        };
+        let spread = rows
+            .iter()
+            .map(|r| dist(r, &self.median).powi(2))
+            .sum::<f64>()
+            / m as f64;
+        self.steps += 1;
+        self.spread += spread.sqrt();
+        self.mean_to_median += dist64(&self.mean, &self.median);
+        self.mean_to_nearest += near(&self.mean);
+        self.median_to_nearest += near(&self.median);
+        self.newest_to_mean += dist(newest, &self.mean);
+        self.newest_to_median += dist(newest, &self.median);
+        self.split_steps += u64::from(m >= 3 && splits(&rows, &mut self.scratch));
+        let newest64: Vec<f64> = newest.iter().map(|&x| f64::from(x)).collect();
+        for (k, r) in rows.iter().rev().enumerate().skip(1) {
+            if self.age.len() < k {
+                self.age.resize(k, (0.0, 0));
+            }
+            self.age[k - 1].0 += dist(r, &newest64);
+            self.age[k - 1].1 += 1;
+        }
+    }
+}
+
+impl CandidateSpread {
+    /// The coordinate-wise mean and median of `rows` into `self.mean`, `self.median`.
+    fn centres(&mut self, rows: &[&[f32]]) {
+        let d = rows[0].len();
+        self.mean.clear();
+        self.median.clear();
+        for j in 0..d {
+            self.scratch.clear();
+            self.scratch.extend(rows.iter().map(|r| f64::from(r[j])));
+            self.mean
+                .push(self.scratch.iter().sum::<f64>() / rows.len() as f64);
+            self.scratch.sort_by(f64::total_cmp);
+            let n = self.scratch.len();
+            self.median
+                .push(0.5 * (self.scratch[(n - 1) / 2] + self.scratch[n / 2]));
+        }
+    }
+
+    /// The means so far.
+    pub fn summary(&self) -> SpreadSummary {
+        let n = self.steps.max(1) as f64;
+        SpreadSummary {
+            steps: self.steps,
+            spread: self.spread / n,
+            mean_to_median: self.mean_to_median / n,
+            mean_to_nearest: self.mean_to_nearest / n,
+            median_to_nearest: self.median_to_nearest / n,
+            newest_to_mean: self.newest_to_mean / n,
+            newest_to_median: self.newest_to_median / n,
+            split_fraction: self.split_steps as f64 / n,
+            by_age: self.age.iter().map(|&(s, c)| s / c.max(1) as f64).collect(),
+        }
+    }
+}
+
+/// Distance between an `f32` row and an `f64` point.
+fn dist(a: &[f32], b: &[f64]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(&x, &y)| (f64::from(x) - y).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
+fn dist64(a: &[f64], b: &[f64]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// Whether the candidates split into two groups along the line through the two farthest
+/// apart: a gap between consecutive projections wider than half their distance and than
+/// [`SPLIT_MIN_PX`].
+fn splits(rows: &[&[f32]], proj: &mut Vec<f64>) -> bool {
+    let (mut a, mut b, mut far) = (0, 0, 0.0);
+    for i in 0..rows.len() {
+        for j in i + 1..rows.len() {
+            let r: Vec<f64> = rows[j].iter().map(|&x| f64::from(x)).collect();
+            let d = dist(rows[i], &r);
+            if d > far {
+                (a, b, far) = (i, j, d);
+            }
+        }
+    }
+    if far < SPLIT_MIN_PX {
+        return false;
+    }
+    let axis: Vec<f64> = rows[a]
+        .iter()
+        .zip(rows[b])
+        .map(|(&x, &y)| (f64::from(y) - f64::from(x)) / far)
+        .collect();
+    proj.clear();
+    proj.extend(rows.iter().map(|r| {
+        r.iter()
+            .zip(rows[a])
+            .zip(&axis)
+            .map(|((&x, &o), u)| (f64::from(x) - f64::from(o)) * u)
+            .sum::<f64>()
+    }));
+    proj.sort_by(f64::total_cmp);
+    let gap = proj.windows(2).map(|w| w[1] - w[0]).fold(0.0, f64::max);
+    gap > 0.5 * far && gap > SPLIT_MIN_PX
+}
+
+#[cfg(test)]
+mod tests {
+    use mte_ensemble::Candidates;
+
+    use super::*;
+
+    fn observe(spread: &mut CandidateSpread, flat: &[f32]) {
+        let c = Candidates::new(flat, 2).expect("candidates");
+        let flags = vec![false; c.len()];
+        spread.on_step(&StepEvent {
+            tau: 0,
+            candidates: c,
+            corrupted: &flags,
+            action: &flat[..2],
+            m: c.len(),
+            q: 0,
+            report: None,
+            bracket: None,
+        });
+    }
+
+    #[test]
+    fn two_clusters_split_and_the_mean_falls_between_them() {
+        let mut s = CandidateSpread::default();
+        // Three candidates at x = 0 and two at x = 100 (oldest first), y = 0.
+        observe(&mut s, &[0., 0., 0., 0., 0., 0., 100., 0., 100., 0.]);
+        let r = s.summary();
+        assert_eq!(r.steps, 1);
+        assert!((r.mean_to_median - 40.0).abs() < 1e-9, "{r:?}");
+        assert!((r.mean_to_nearest - 40.0).abs() < 1e-9);
+        assert_eq!(r.median_to_nearest, 0.0);
+        assert!((r.newest_to_mean - 60.0).abs() < 1e-9);
+        assert_eq!(r.split_fraction, 1.0);
+        assert_eq!(r.by_age, vec![0.0, 100.0, 100.0, 100.0]);
+        // RMS distance from the median (0, 0): sqrt((3 * 0 + 2 * 100^2) / 5).
+        assert!((r.spread - (2.0e4f64 / 5.0).sqrt()).abs() < 1e-9);
+    }
+
+    #[test]
+    fn an_even_spread_does_not_split_and_one_candidate_is_not_counted() {
+        let mut s = CandidateSpread::default();
+        observe(&mut s, &[0., 0., 25., 0., 50., 0., 75., 0., 100., 0.]);
+        observe(&mut s, &[3., 4.]);
+        let r = s.summary();
+        assert_eq!(r.steps, 1);
+        assert_eq!(r.split_fraction, 0.0);
+        assert_eq!(r.mean_to_median, 0.0);
+        assert_eq!(r.by_age, vec![25.0, 50.0, 75.0, 100.0]);
+    }
+}

@@ -148,7 +148,12 @@ pub(super) fn build(
             };
             let undefended_clean = clean(&pair.undefended, d.spec.h, arm)?;
             let den = denominator(u, find(&pair.undefended, "clean", d.spec.h), arm)?;
-            let recovered = recovered(undefended_clean.as_ref(), Some(&comparison), den);
+            let defended_clean = clean(&pair.defended, d.spec.h, arm)?;
+            let recovered = recovered(
+                (undefended_clean.as_ref(), defended_clean.as_ref()),
+                Some(&comparison),
+                den,
+            );
             rows.push(DefenceRow {
                 corruption: corruption.clone(),
                 h: d.spec.h,
@@ -156,7 +161,7 @@ pub(super) fn build(
                 undefended_cell: u.spec.id.clone(),
                 defended_cell: d.spec.id.clone(),
                 clean: undefended_clean,
-                defended_clean: clean(&pair.defended, d.spec.h, arm)?,
+                defended_clean,
                 comparison,
                 undefended_success: us,
                 defended_success: ds,

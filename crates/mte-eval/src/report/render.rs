@@ -168,8 +168,9 @@ impl Report {
             "One row per corrupted cell. Mean max coverage ± standard error over the seeds both \
              arms ran (n), success rate in parentheses; clean: the baseline and the robust arm on \
              the clean cell of the same policy and h (a gap between them on clean data is a \
-             confound of every comparison below). Δ = robust − baseline per seed, ± paired \
-             standard error. \
+             confound of every comparison below); clean Δ (p): robust − baseline on that clean \
+             cell per seed and its two-sided paired Wilcoxon p. Δ = robust − baseline per seed, \
+             ± paired standard error. \
              p (W): two-sided Wilcoxon signed-rank test on paired max coverage; p (McN): exact \
              McNemar test on paired success, b:c = baseline-only : robust-only successes. Holm \
              over the {} rows.",
@@ -195,6 +196,10 @@ impl Report {
                         c.map_or_else(|| "0".into(), |c| c.n.to_string()),
                         clean_cell_text(r.clean.as_ref()),
                         clean_cell_text(r.robust_clean.as_ref()),
+                        r.clean_comparison.as_ref().map_or_else(
+                            || "—".into(),
+                            |k| format!("{} ({})", delta(k.delta.as_ref()), opt_p(k.wilcoxon_p)),
+                        ),
                         with_rate(
                             c.and_then(|c| c.baseline.as_ref()),
                             c.and_then(|c| c.baseline_success),
@@ -222,6 +227,7 @@ impl Report {
                     "n",
                     "clean (baseline)",
                     "clean (robust)",
+                    "clean Δ (p)",
                     "baseline",
                     "robust",
                     "Δ",
@@ -368,6 +374,9 @@ impl Report {
              denominator is not significantly above zero (the corruption does not lower the \
              baseline: paired Wilcoxon on coverage, exact McNemar on success, p < 0.05 over \
              the seeds both cells ran), since a fraction of noise is not meaningful. \
+             Against own clean: 1 − (robust clean − robust) / (clean − baseline), the share of \
+             the baseline's loss that the robust arm avoids measured from its own clean value, \
+             so a clean-data gap between the arms is not counted as recovery. \
              Baseline {}, robust {}.",
             code(&self.baseline),
             code(&self.robust)
@@ -391,7 +400,11 @@ impl Report {
                         .map_or_else(|| "—".into(), |e| f3(e.mean)),
                     c.and_then(|c| c.other)
                         .map_or_else(|| "—".into(), |e| f3(e.mean)),
+                    r.robust_clean
+                        .as_ref()
+                        .map_or_else(|| "—".into(), |k| f3(k.coverage.mean)),
                     fr(r.recovered.coverage),
+                    fr(r.recovered.coverage_own),
                     fr(r.recovered.success),
                 ]
             })
@@ -402,7 +415,9 @@ impl Report {
                 "clean",
                 "baseline",
                 "robust",
+                "robust clean",
                 "recovered (coverage)",
+                "against own clean",
                 "recovered (success)",
             ],
             rows,

@@ -543,6 +543,9 @@ pub struct Report {
     pub main: Vec<MainRow>,
     /// Aggregator table.
     pub focus: FocusTable,
+    /// Every clean cell's arms against the baseline, in manifest order: the clean-data
+    /// differences that confound the comparisons under corruption.
+    pub clean_cells: Vec<FocusTable>,
     /// Bracket tables, arms in run order (arms without bracket data left out).
     pub brackets: Vec<ArmBrackets>,
     /// `M`/`q` distributions of the ensemble arms.
@@ -718,6 +721,11 @@ pub fn build(
     let main = main_rows(&cells, &corrupted, (&baseline, &robust), &mut notes)?;
     let focus_ci = focus_cell(manifest, &cells, &corrupted, opts)?;
     let focus = focus_table(&cells[focus_ci], &baseline, &mut notes)?;
+    let clean_cells = cells
+        .iter()
+        .filter(|c| c.is_clean())
+        .map(|c| focus_table(c, &baseline, &mut notes))
+        .collect::<Result<Vec<_>, _>>()?;
     let (mut brackets, mut distributions, mut overhead) = (Vec::new(), Vec::new(), Vec::new());
     for arm in &all_arms {
         let (b, d) = arm_diagnostics(&cells, &corrupted, arm);
@@ -750,6 +758,7 @@ pub fn build(
         robust,
         main,
         focus,
+        clean_cells,
         brackets,
         distributions,
         overhead,

@@ -121,6 +121,7 @@ impl Report {
         self.failures(&mut b);
         self.plots_section(&mut b);
         self.defence_section(&mut b);
+        self.clean_section(&mut b);
         b
     }
 
@@ -257,6 +258,32 @@ impl Report {
             (CONFIDENCE * 100.0).round(),
             code(&self.baseline)
         )));
+        b.push(arms_table(f));
+    }
+
+    /// Section 10: every clean cell, every arm against the baseline.
+    fn clean_section(&self, b: &mut Vec<Block>) {
+        b.push(Block::Heading(
+            "10. Clean cells: every arm against the baseline".into(),
+        ));
+        b.push(Block::Para(format!(
+            "The clean-data differences between arms, which every comparison under corruption \
+             of the same policy and h carries (columns as in section 2, against {}).",
+            code(&self.baseline)
+        )));
+        if self.clean_cells.is_empty() {
+            b.push(Block::Para("No clean cell.".into()));
+        }
+        for f in &self.clean_cells {
+            b.push(Block::Para(format!("Cell {}:", code(&f.cell))));
+            b.push(arms_table(f));
+        }
+    }
+}
+
+/// The arms of one cell against the baseline (sections 2 and 10).
+fn arms_table(f: &FocusTable) -> Block {
+    {
         let rows = f
             .rows
             .iter()
@@ -284,7 +311,7 @@ impl Report {
                 ]
             })
             .collect();
-        b.push(table(
+        table(
             &[
                 "arm",
                 "n",
@@ -298,9 +325,11 @@ impl Report {
                 "Holm (McN)",
             ],
             rows,
-        ));
+        )
     }
+}
 
+impl Report {
     /// Section 3: bracket diagnostics by regime.
     fn bracket(&self, b: &mut Vec<Block>) {
         b.push(Block::Heading("3. Bracket diagnostics by regime".into()));

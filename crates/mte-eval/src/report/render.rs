@@ -261,11 +261,13 @@ impl Report {
         b.push(arms_table(f));
     }
 
-    /// Section 10: every clean cell, every arm against the baseline.
+    /// The last section (9, or 10 after the defence table): every clean cell, every arm
+    /// against the baseline.
     fn clean_section(&self, b: &mut Vec<Block>) {
-        b.push(Block::Heading(
-            "10. Clean cells: every arm against the baseline".into(),
-        ));
+        let number = if self.defence.is_some() { 10 } else { 9 };
+        b.push(Block::Heading(format!(
+            "{number}. Clean cells: every arm against the baseline"
+        )));
         b.push(Block::Para(format!(
             "The clean-data differences between arms, which every comparison under corruption \
              of the same policy and h carries (columns as in section 2, against {}).",

@@ -1882,7 +1882,7 @@ mod tests {
         );
         // Without the option the report has no section 9.
         let plain = build(&m, &l, &ReportOptions::default()).expect("report");
-        assert!(plain.defence.is_none() && !plain.markdown().contains("## 9."));
+        assert!(plain.defence.is_none() && !plain.markdown().contains("## 9. Defence"));
     }
 
     #[test]

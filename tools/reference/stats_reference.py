@@ -46,6 +46,9 @@ MCNEMAR = [
     (497000, 503000), (482000, 518000),
 ]
 
+# The paper's 78:10 (chi-square 9.2e-13, exact 3.3e-14) and a far tail.
+MCNEMAR_CC_EXTRA = [(78, 10), (400, 100), (30, 30), (31, 30)]
+
 ZTEST = [
     (37, 200, 5, 200), (10, 50, 20, 60), (0, 100, 3, 100), (500, 1000, 520, 1000),
     (1, 10, 9, 10), (150, 300, 150, 300), (999, 1000, 900, 1000),
@@ -81,6 +84,13 @@ def binom_tail_cases():
 def mcnemar_cases():
     return [{"b": b, "c": c, "pvalue": f(stats.binomtest(b, b + c, 0.5).pvalue)}
             for b, c in MCNEMAR]
+
+
+def mcnemar_cc_cases():
+    """McNemar's chi-square with Edwards' continuity correction: chi2.sf((|b-c|-1)^2/(b+c), 1)."""
+    return [{"b": b, "c": c,
+             "pvalue": f(stats.chi2.sf((abs(b - c) - 1) ** 2 / (b + c), 1))}
+            for b, c in MCNEMAR + MCNEMAR_CC_EXTRA if b + c > 0]
 
 
 def wilcoxon_samples():
@@ -220,6 +230,7 @@ def main():
         "binomtest": binomtest_cases(),
         "binom_tails": binom_tail_cases(),
         "mcnemar": mcnemar_cases(),
+        "mcnemar_cc": mcnemar_cc_cases(),
         "wilcoxon": wilcoxon_cases(),
         "ztest": ztest_cases(),
         "norm": norm_points,

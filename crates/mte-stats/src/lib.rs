@@ -70,8 +70,8 @@ pub use error::{Result, StatsError};
 pub use multiple::holm;
 pub use normal::{norm_cdf, norm_pdf, norm_ppf, norm_sf};
 pub use paired::{
-    McNemarResult, PairedSummary, WILCOXON_EXACT_MAX_PAIRS, WILCOXON_PERMUTATION_MAX_PAIRS,
-    WilcoxonMethod, WilcoxonResult, mcnemar_exact, mean_and_paired_se, paired_se,
-    wilcoxon_signed_rank, wilcoxon_signed_rank_diffs,
+    McNemarResult, McNemarTest, PairedSummary, UnknownMcNemarTest, WILCOXON_EXACT_MAX_PAIRS,
+    WILCOXON_PERMUTATION_MAX_PAIRS, WilcoxonMethod, WilcoxonResult, mcnemar_chi2_corrected,
+    mcnemar_exact, mean_and_paired_se, paired_se, wilcoxon_signed_rank, wilcoxon_signed_rank_diffs,
 };
 pub use proportions::{ZTestResult, binomial_se, two_proportion_ztest, wilson_interval};

@@ -391,3 +391,16 @@ fn results_round_trip_through_serde() {
         serde_json::from_str(&serde_json::to_string(&m).unwrap()).unwrap();
     assert_eq!(back, m);
 }
+
+/// Far in the tail the corrected chi-square p-value underflows, and its logarithm stays
+/// finite and close to the normal tail's leading term `ln 2 - z^2 / 2`.
+#[test]
+fn mcnemar_chi2_corrected_keeps_a_finite_log_p_where_p_underflows() {
+    let r = mte_stats::mcnemar_chi2_corrected(1_000_000, 0).expect("test");
+    assert_eq!(r.p_value, 0.0);
+    let z2 = (999_999.0f64).powi(2) / 1e6;
+    assert!(r.ln_p_value.is_finite());
+    assert!((r.ln_p_value - (std::f64::consts::LN_2 - z2 / 2.0)).abs() < 10.0);
+    // No discordant pairs: no evidence.
+    assert_eq!(mte_stats::mcnemar_chi2_corrected(0, 0).expect("test").p_value, 1.0);
+}

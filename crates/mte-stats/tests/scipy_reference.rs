@@ -56,6 +56,7 @@ struct Fixture {
     binomtest: Vec<BinomTest>,
     binom_tails: Vec<BinomTail>,
     mcnemar: Vec<McNemar>,
+    mcnemar_cc: Vec<McNemar>,
     wilcoxon: Vec<Wilcoxon>,
     ztest: Vec<ZTest>,
     norm: Vec<NormPoint>,
@@ -209,6 +210,30 @@ fn mcnemar_matches_scipy_binomtest() {
             &format!("mcnemar {}:{}", c.b, c.c),
         );
     }
+}
+
+/// The continuity-corrected chi-square McNemar: scipy's `chi2.sf(stat, 1)` and this crate's
+/// `2 norm_sf(sqrt(stat))` are the same function (chi2 with one degree of freedom is a
+/// squared normal), evaluated through different erfc implementations, so the tolerance is
+/// that of the normal formulas.
+#[test]
+fn mcnemar_chi2_corrected_matches_scipy_chi2() {
+    let f = fixture();
+    assert!(f.mcnemar_cc.iter().any(|c| (c.b, c.c) == (78, 10)));
+    for c in f.mcnemar_cc {
+        let r = mte_stats::mcnemar_chi2_corrected(c.b, c.c).unwrap();
+        assert_close(
+            r.p_value,
+            c.pvalue,
+            NORMAL_FORMULA,
+            &format!("mcnemar chi2-cc {}:{}", c.b, c.c),
+        );
+        assert!((r.ln_p_value - c.pvalue.ln()).abs() < 1e-9, "ln p {}:{}", c.b, c.c);
+        // Chosen by name, the same test.
+        let by_name: mte_stats::McNemarTest = "chi2-cc".parse().unwrap();
+        assert_eq!(by_name.run(c.b, c.c).unwrap(), r);
+    }
+    assert!("chi2".parse::<mte_stats::McNemarTest>().is_err());
 }
 
 #[test]

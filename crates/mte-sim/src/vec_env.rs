@@ -1,12 +1,16 @@
-//! `VecEnv`: N independent PushT environments stepped in parallel with rayon.
+//! `VecEnv`: N independent PushT environments stepped in parallel.
 //!
-//! Every environment owns its physics world and is stepped by exactly one task, so results do
-//! not depend on the number of threads or on scheduling (a test checks 1 thread against many).
+//! Every environment owns its physics world and is stepped by exactly one thread, so results
+//! do not depend on the number of threads or on scheduling (a test checks 1 thread against
+//! many). A step splits the environments into one contiguous block per thread (the thread
+//! count is rayon's, so `RAYON_NUM_THREADS` and `ThreadPool::install` set it); the calling
+//! thread steps the first block and scoped threads the others. Resets use rayon's pool.
 
 use rayon::prelude::*;
 
-/// The fewest environments stepped on the thread pool; fewer run on the calling thread. A
-/// step is about 20 us of physics, and waking the pool's workers costs several times that.
+/// The fewest environments stepped on several threads; fewer run on the calling thread. A
+/// step is 10-20 us of physics, and starting a thread costs about as much
+/// (`benches/step.rs`, `vec_env_tick` against `plain_loop_tick`).
 pub const PARALLEL_MIN_ENVS: usize = 8;
 
 use crate::env::{PhysicsConfig, PushT, State, StepInfo};
@@ -91,17 +95,38 @@ impl VecEnv {
                 .collect();
         }
         let chunk = self.chunk();
-        self.envs
-            .par_iter_mut()
-            .zip(actions.par_iter())
-            .with_min_len(chunk)
-            .map(|(e, &a)| e.step(a))
-            .collect()
+        let mut out: Vec<Result<StepInfo, SimError>> = Vec::with_capacity(self.envs.len());
+        // One block per thread; the calling thread steps the first block itself, so a tick
+        // wakes `threads - 1` scoped threads and nothing waits on a pool's sleeping workers.
+        std::thread::scope(|scope| {
+            let mut blocks = self.envs.chunks_mut(chunk).zip(actions.chunks(chunk));
+            let first = blocks.next();
+            let handles: Vec<_> = blocks
+                .map(|(envs, acts)| {
+                    scope.spawn(move || {
+                        envs.iter_mut()
+                            .zip(acts)
+                            .map(|(e, &a)| e.step(a))
+                            .collect::<Vec<_>>()
+                    })
+                })
+                .collect();
+            if let Some((envs, acts)) = first {
+                out.extend(envs.iter_mut().zip(acts).map(|(e, &a)| e.step(a)));
+            }
+            for h in handles {
+                // A worker only panics on a bug; its panic continues here.
+                match h.join() {
+                    Ok(v) => out.extend(v),
+                    Err(p) => std::panic::resume_unwind(p),
+                }
+            }
+        });
+        out.into_iter().collect()
     }
 
-    /// Whether a tick is worth the pool: below [`PARALLEL_MIN_ENVS`] environments, or with
-    /// one thread, waking workers costs more than the physics (`benches/step.rs`,
-    /// `vec_env`).
+    /// Whether a tick is worth more threads: not below [`PARALLEL_MIN_ENVS`] environments,
+    /// nor with one thread.
     fn parallel(&self) -> bool {
         self.envs.len() >= PARALLEL_MIN_ENVS && rayon::current_num_threads() > 1
     }

@@ -402,5 +402,10 @@ fn mcnemar_chi2_corrected_keeps_a_finite_log_p_where_p_underflows() {
     assert!(r.ln_p_value.is_finite());
     assert!((r.ln_p_value - (std::f64::consts::LN_2 - z2 / 2.0)).abs() < 10.0);
     // No discordant pairs: no evidence.
-    assert_eq!(mte_stats::mcnemar_chi2_corrected(0, 0).expect("test").p_value, 1.0);
+    assert_eq!(
+        mte_stats::mcnemar_chi2_corrected(0, 0)
+            .expect("test")
+            .p_value,
+        1.0
+    );
 }

@@ -228,7 +228,12 @@ fn mcnemar_chi2_corrected_matches_scipy_chi2() {
             NORMAL_FORMULA,
             &format!("mcnemar chi2-cc {}:{}", c.b, c.c),
         );
-        assert!((r.ln_p_value - c.pvalue.ln()).abs() < 1e-9, "ln p {}:{}", c.b, c.c);
+        assert!(
+            (r.ln_p_value - c.pvalue.ln()).abs() < 1e-9,
+            "ln p {}:{}",
+            c.b,
+            c.c
+        );
         // Chosen by name, the same test.
         let by_name: mte_stats::McNemarTest = "chi2-cc".parse().unwrap();
         assert_eq!(by_name.run(c.b, c.c).unwrap(), r);

@@ -46,6 +46,9 @@ pub enum Command {
     /// The PushT experiment with the bundled policy: blank-frame bursts, exp-weighted mean
     /// vs median, paired episodes, a report (a few minutes on 2 cores).
     Demo(DemoArgs),
+    /// Film one episode twice from the same seed under the same corruption, with two
+    /// aggregators side by side (the paper's Figure 2): an animated GIF and a strip.
+    Film(FilmArgs),
     /// Run a sweep spec (TOML grid of policy x corruption x q x h) into a run directory.
     Sweep(SweepArgs),
     /// Tables, paired tests and plots from one or more run directories.
@@ -476,6 +479,44 @@ pub struct DemoArgs {
     pub out: PathBuf,
 }
 
+/// `mte film`
+#[derive(Debug, Args)]
+pub struct FilmArgs {
+    /// Policy checkpoint directory.
+    #[arg(long, value_name = "DIR")]
+    pub policy: PathBuf,
+    /// Reset seed.
+    #[arg(long, default_value_t = 100_000)]
+    pub seed: u64,
+    /// Reset stream.
+    #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
+    pub stream: StreamArg,
+    /// The two arms, left then right (comma-separated).
+    #[arg(long, value_delimiter = ',', num_args = 1, default_value = "ewm:0.01,median", value_parser = arm)]
+    pub arms: Vec<String>,
+    /// Corruption at struck queries, as TOML inline table fields (as `mte demo --fault`).
+    #[arg(long, default_value = r#"kind = "blank""#, value_parser = fault)]
+    pub fault: mte_eval::corruption::Fault,
+    /// Burst length q (corrupted queries per period of M_min); 0 films a clean episode.
+    #[arg(long, default_value_t = 2)]
+    pub q: usize,
+    /// Query stride h.
+    #[arg(long, default_value_t = 2, value_parser = at_least_one)]
+    pub stride: usize,
+    /// Step limit.
+    #[arg(long, default_value_t = 300, value_parser = at_least_one)]
+    pub max_steps: usize,
+    /// Seed of the sampling and corruption streams (a sweep's `noise_seed`).
+    #[arg(long, default_value_t = 0)]
+    pub noise_seed: u64,
+    /// Panel side in pixels (32..=1024).
+    #[arg(long, default_value_t = 128)]
+    pub size: usize,
+    /// Directory for figure2.gif and figure2-strip.png.
+    #[arg(long, short, value_name = "DIR", default_value = "runs/film")]
+    pub out: PathBuf,
+}
+
 /// `mte sweep`
 #[derive(Debug, Args)]
 pub struct SweepArgs {
@@ -517,6 +558,10 @@ pub struct ReportArgs {
     /// last component), cells paired by corruption and h.
     #[arg(long, value_name = "UNDEFENDED:DEFENDED", value_parser = parse_defence)]
     pub defence: Option<mte_eval::report::DefencePair>,
+    /// Film Figure 2 (the chosen episode with both arms, as a GIF and a strip of frames)
+    /// into the report; runs the policy of the chosen cell twice.
+    #[arg(long)]
+    pub figure2: bool,
 }
 
 fn parse_defence(s: &str) -> Result<mte_eval::report::DefencePair, String> {

@@ -20,6 +20,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match &cli.command {
         Command::Demo(a) => cmd::demo::run(&cli, a),
+        Command::Film(a) => cmd::film::run(&cli, a),
         Command::Sweep(a) => cmd::sweep::run(&cli, a),
         Command::Report(a) => cmd::report::run(&cli, a),
         Command::Synthetic(a) => cmd::synthetic::run(&cli, a),

@@ -10,7 +10,8 @@
 //!   on; [`calibrate`]: PGD budget calibration; [`patch_file`]: trained patches on disk;
 //!   [`train_data`]: the arrays a policy trains, is attacked or fine-tuned on, from a
 //!   dataset; [`dispersion`]: how spread the candidates an aggregator combines are (the
-//!   instrument of the clean-data confound).
+//!   instrument of the clean-data confound); [`film`]: episodes drawn side by side (the
+//!   paper's Figure 2).
 //! - [`synthetic`]: a stress test without a simulator. A smooth reference trajectory, a
 //!   chunked "policy" that predicts it with small noise, and a burst schedule that replaces
 //!   `q` of every `M_min` queries with arbitrary values. Every aggregator sees the same
@@ -28,6 +29,7 @@ pub mod corruption;
 pub mod dispersion;
 pub mod environment;
 pub mod episode;
+pub mod film;
 mod label;
 pub mod machine;
 pub mod patch_file;

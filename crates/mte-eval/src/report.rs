@@ -546,6 +546,8 @@ pub struct Report {
     /// Every clean cell's arms against the baseline, in manifest order: the clean-data
     /// differences that confound the comparisons under corruption.
     pub clean_cells: Vec<FocusTable>,
+    /// The episode of the paper's Figure 2, if one was found.
+    pub figure2: Option<Figure2>,
     /// Bracket tables, arms in run order (arms without bracket data left out).
     pub brackets: Vec<ArmBrackets>,
     /// `M`/`q` distributions of the ensemble arms.
@@ -721,6 +723,7 @@ pub fn build(
     let main = main_rows(&cells, &corrupted, (&baseline, &robust), &mut notes)?;
     let focus_ci = focus_cell(manifest, &cells, &corrupted, opts)?;
     let focus = focus_table(&cells[focus_ci], &baseline, &mut notes)?;
+    let figure2 = figure2(&cells, &corrupted, (&baseline, &robust));
     let clean_cells = cells
         .iter()
         .filter(|c| c.is_clean())
@@ -759,6 +762,7 @@ pub fn build(
         main,
         focus,
         clean_cells,
+        figure2,
         brackets,
         distributions,
         overhead,
@@ -1266,6 +1270,69 @@ fn focus_table(
     })
 }
 
+/// The episode of the paper's Figure 2: among the corrupted cells' paired seeds, one the
+/// robust arm solves and the baseline does not, the largest coverage difference first. Its
+/// films (`files`) are made by whoever can run the policy (`mte report --figure2`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Figure2 {
+    /// Cell id.
+    pub cell: String,
+    /// Policy label (the checkpoint as given in the spec).
+    pub policy: String,
+    /// Reset seed.
+    pub seed: u64,
+    /// Query stride.
+    pub h: usize,
+    /// Step limit.
+    pub max_steps: usize,
+    /// The cell's corruption.
+    pub corruption: crate::corruption::CorruptionSpec,
+    /// Baseline: success and max coverage as recorded.
+    pub baseline: (bool, f64),
+    /// Robust arm: success and max coverage as recorded.
+    pub robust: (bool, f64),
+    /// `(caption, path relative to the report)` of the rendered figures.
+    pub files: Vec<(String, String)>,
+}
+
+fn figure2(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    (baseline, robust): (&str, &str),
+) -> Option<Figure2> {
+    let mut best: Option<(f64, Figure2)> = None;
+    for c in corrupted.iter().map(|&i| &cells[i]) {
+        for b in c.episodes(baseline).iter().filter(|e| !e.success) {
+            let Some(r) = c
+                .episodes(robust)
+                .iter()
+                .find(|e| e.seed == b.seed && e.success)
+            else {
+                continue;
+            };
+            let gap = r.max_coverage - b.max_coverage;
+            if best.as_ref().is_some_and(|(g, _)| *g >= gap) {
+                continue;
+            }
+            best = Some((
+                gap,
+                Figure2 {
+                    cell: c.spec.id.clone(),
+                    policy: c.spec.policy.clone(),
+                    seed: b.seed,
+                    h: c.spec.h,
+                    max_steps: c.spec.max_steps,
+                    corruption: c.spec.corruption.clone(),
+                    baseline: (b.success, b.max_coverage),
+                    robust: (r.success, r.max_coverage),
+                    files: Vec::new(),
+                },
+            ));
+        }
+    }
+    best.map(|(_, f)| f)
+}
+
 /// Arms of `members`, in their order.
 fn arms_of(cells: &[CellData<'_>], members: &[usize]) -> Vec<String> {
     let mut sorted = members.to_vec();
@@ -1454,6 +1521,36 @@ mod tests {
 
     fn report() -> Report {
         build(&manifest(), &lines(), &ReportOptions::default()).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// Figure 2's episode: a corrupted cell's seed the median solves and the EWM does not,
+    /// with the largest coverage difference of all such pairs.
+    #[test]
+    fn figure2_picks_the_widest_median_win_over_a_baseline_failure() {
+        let r = report();
+        let f = r.figure2.as_ref().unwrap();
+        assert!(f.robust.0 && !f.baseline.0, "{f:?}");
+        let gap = f.robust.1 - f.baseline.1;
+        let eps: Vec<EpisodeRecord> = lines()
+            .into_iter()
+            .filter_map(|l| match l {
+                Line::Episode(e) if e.cell != CLEAN => Some(e),
+                _ => None,
+            })
+            .collect();
+        let mut pairs = 0;
+        for b in eps.iter().filter(|e| e.arm == EWM && !e.success) {
+            let hit = eps
+                .iter()
+                .find(|e| e.arm == MEDIAN && e.cell == b.cell && e.seed == b.seed && e.success);
+            if let Some(m) = hit {
+                pairs += 1;
+                assert!(m.max_coverage - b.max_coverage <= gap);
+            }
+        }
+        assert!(pairs >= 1);
+        let md = r.markdown();
+        assert!(md.contains(&format!("seed {}", f.seed)), "{md}");
     }
 
     fn row<'a>(r: &'a Report, cell: &str) -> &'a MainRow {

@@ -574,3 +574,31 @@ fn common_mode_bias_shifts_the_candidates_the_aggregator_sees() -> TestResult {
     }
     Ok(())
 }
+
+/// A filmed episode is the runner's episode: the same record (but its timings), one frame
+/// per control step, and the corrupted steps flagged as the schedule strikes.
+#[test]
+fn a_film_is_the_episode_with_one_flagged_frame_per_step() -> TestResult {
+    let corruption = blank_burst(2);
+    let s = spec(
+        Execution::Ensemble(mte_ensemble::Aggregator::MEDIAN),
+        &corruption,
+        2,
+    );
+    let p = Scripted::new(400.0);
+    let film = mte_eval::film::film(&p, &s, 48)?;
+    let plain = run_episode(&p, &s)?;
+    let strip_times = |mut r: EpisodeRecord| {
+        r.times = Default::default();
+        r
+    };
+    assert_eq!(strip_times(film.record.clone()), strip_times(plain.clone()));
+    assert_eq!(film.shots.len(), plain.steps);
+    assert!(film.shots.iter().all(|f| f.rgb.len() == 48 * 48 * 3));
+    // Each corrupted query flags its h = 2 steps (the last query may be cut short).
+    let flagged = film.shots.iter().filter(|f| f.corrupted).count();
+    assert!(flagged <= 2 * plain.corrupted_queries && flagged + 1 >= 2 * plain.corrupted_queries);
+    assert!(plain.corrupted_queries > 0);
+    assert!(mte_eval::film::film(&p, &s, 8).is_err(), "panel too small");
+    Ok(())
+}

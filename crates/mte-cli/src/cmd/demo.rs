@@ -81,6 +81,7 @@ pub fn run(cli: &Cli, a: &DemoArgs) -> Result<()> {
         std::slice::from_ref(&a.out),
         &a.out,
         &ReportOptions::default(),
+        true,
     )?;
     super::sweep::fail_on_errors(&s, &a.out)
 }

@@ -4,6 +4,7 @@ pub mod attack;
 pub mod data;
 pub mod demo;
 pub mod eval;
+pub mod film;
 pub mod media;
 pub mod replay;
 pub mod report;

@@ -14,9 +14,37 @@ pub fn write_and_print(
     runs: &[std::path::PathBuf],
     out: &Path,
     opts: &ReportOptions,
+    figure2: bool,
 ) -> Result<()> {
     let (manifest, lines) = mte_eval::store::load_runs(runs)?;
-    let r = report::build(&manifest, &lines, opts).context("building the report")?;
+    let mut r = report::build(&manifest, &lines, opts).context("building the report")?;
+    if figure2 && let Some(f) = r.figure2.as_mut() {
+        let stream = run_stream(&runs[0])?;
+        let arms = [r.baseline.parse()?, r.robust.parse()?];
+        let films = crate::cmd::film::shoot(&crate::cmd::film::Shoot {
+            policy: Path::new(&f.policy),
+            seed: f.seed,
+            stream,
+            h: f.h,
+            max_steps: f.max_steps,
+            corruption: &f.corruption,
+            noise_seed: manifest.noise_seed,
+            arms,
+            size: 128,
+        })
+        .context("filming Figure 2")?;
+        for (film, (success, coverage)) in films.iter().zip([f.baseline, f.robust]) {
+            let same = film.record.success == success && film.record.max_coverage == coverage;
+            if !same {
+                r.notes.push(format!(
+                    "Figure 2: the filmed `{}` episode (max coverage {:.3}) differs from the recorded \
+                     one ({coverage:.3}): the run was made on another CPU or mte version",
+                    film.record.arm, film.record.max_coverage
+                ));
+            }
+        }
+        f.files = crate::cmd::film::write_figure(out, &films)?;
+    }
     let files = r
         .write(out)
         .with_context(|| format!("writing the report into {}", out.display()))?;
@@ -37,6 +65,19 @@ pub fn write_and_print(
     Ok(())
 }
 
+/// The reset stream of a run directory's sweep spec (legacy where it has none).
+fn run_stream(run: &Path) -> Result<mte_sim::ResetStream> {
+    let path = run.join("spec.toml");
+    if !path.exists() {
+        return Ok(mte_sim::ResetStream::Legacy);
+    }
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let spec = mte_eval::sweep::SweepSpec::from_toml(&text)
+        .with_context(|| format!("parsing {}", path.display()))?;
+    Ok(spec.stream)
+}
+
 /// `mte report`
 pub fn run(cli: &Cli, a: &ReportArgs) -> Result<()> {
     let out = a.out.clone().unwrap_or_else(|| a.runs[0].clone());
@@ -46,5 +87,5 @@ pub fn run(cli: &Cli, a: &ReportArgs) -> Result<()> {
         focus_cell: a.cell.clone(),
         defence: a.defence.clone(),
     };
-    write_and_print(cli, &a.runs, &out, &opts)
+    write_and_print(cli, &a.runs, &out, &opts, a.figure2)
 }

@@ -76,6 +76,8 @@ pub(super) enum Block {
         rows: Vec<Vec<String>>,
     },
     Plots,
+    /// An image file beside the report: (alt text, relative path).
+    Image(String, String),
 }
 
 pub(super) fn table(head: &[&str], rows: Vec<Vec<String>>) -> Block {
@@ -599,6 +601,51 @@ impl Report {
         } else {
             b.push(Block::Plots);
         }
+        self.figure2_blocks(b);
+    }
+
+    /// Figure 2: one episode under the same corruption, baseline beside robust arm.
+    fn figure2_blocks(&self, b: &mut Vec<Block>) {
+        let Some(f) = &self.figure2 else {
+            if !self.main.is_empty() {
+                b.push(Block::Para(format!(
+                    "Figure 2: no paired episode of a corrupted cell that {} solves and {} does \
+                     not.",
+                    code(&self.robust),
+                    code(&self.baseline)
+                )));
+            }
+            return;
+        };
+        let cov = |(s, c): (bool, f64)| {
+            format!(
+                "max coverage {c:.3}, {}",
+                if s { "success" } else { "failure" }
+            )
+        };
+        b.push(Block::Para(format!(
+            "Figure 2: cell {}, seed {}: the same episode (same reset, same sampling noise, same \
+             corruption schedule) run with {} (left, {}) and {} (right, {}). A red border marks a \
+             step whose newest query was corrupted; the cross is the executed action (target); a \
+             grey border, an episode that has ended.{}",
+            code(&f.cell),
+            f.seed,
+            code(&self.baseline),
+            cov(f.baseline),
+            code(&self.robust),
+            cov(f.robust),
+            if f.files.is_empty() {
+                format!(
+                    " Not rendered: `mte report --figure2` films it (or `mte film --policy {} --seed {} ...`).",
+                    f.policy, f.seed
+                )
+            } else {
+                String::new()
+            }
+        )));
+        for (alt, path) in &f.files {
+            b.push(Block::Image(alt.clone(), path.clone()));
+        }
     }
 
     /// Section 9 (when asked for): the defence table.
@@ -646,6 +693,9 @@ impl Report {
                     for p in &self.plots {
                         let _ = writeln!(out, "![{}](plots/{}.svg)", p.title, p.name);
                     }
+                }
+                Block::Image(alt, path) => {
+                    let _ = writeln!(out, "![{alt}]({path})");
                 }
             }
             out.push('\n');
@@ -723,6 +773,15 @@ impl Report {
                             esc(&p.title)
                         );
                     }
+                }
+                Block::Image(alt, path) => {
+                    let _ = writeln!(
+                        out,
+                        "<figure><img src=\"{}\" alt=\"{}\"><figcaption>{}</figcaption></figure>",
+                        esc(&path),
+                        esc(&alt),
+                        esc(&alt)
+                    );
                 }
             }
         }

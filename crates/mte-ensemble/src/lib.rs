@@ -84,7 +84,6 @@ mod ensembler;
 mod error;
 pub mod geometry;
 mod network;
-mod select;
 
 pub use aggregate::{
     Aggregate, Aggregator, Candidates, DEFAULT_EWM_M, MedianTie, WeightOrder, Workspace,

@@ -135,9 +135,6 @@ pub struct Workspace {
     decay_m: f64,
     /// `median_nets[n]`: the pruned median network for `n` rows.
     median_nets: Vec<Vec<(u16, u16)>>,
-    /// Order-preserving keys of one coordinate of every candidate, for sets beyond the
-    /// networks (empty when the capacity is within them).
-    keys: Vec<u32>,
 }
 
 impl Workspace {
@@ -162,11 +159,6 @@ impl Workspace {
             decay: vec![1.0; capacity],
             decay_m: 0.0,
             median_nets: nets,
-            keys: if capacity > NETWORK_MAX {
-                vec![0; capacity]
-            } else {
-                Vec::new()
-            },
         }
     }
 

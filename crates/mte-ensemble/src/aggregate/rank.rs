@@ -1,7 +1,7 @@
 //! Rank statistics: coordinate-wise median, trimmed mean, recency-weighted median.
 
 use super::{Candidates, MedianTie, Workspace};
-use crate::{network, select};
+use crate::network;
 
 /// Midpoint of two finite f32 values without overflow.
 #[inline]
@@ -10,8 +10,7 @@ fn midpoint(lo: f32, hi: f32) -> f32 {
 }
 
 /// Writes the central pair of order statistics of every coordinate of the candidates from
-/// row `first` on to `emit(j, lower, upper)`, by bisection on order-preserving keys (for sets
-/// beyond the networks).
+/// row `first` on to `emit(j, lower, upper)`, by selection (for sets beyond the networks).
 fn central_pairs(
     c: &Candidates<'_>,
     first: usize,
@@ -21,12 +20,18 @@ fn central_pairs(
     let n = c.len() - first;
     let (lo, hi) = ((n - 1) / 2, n / 2);
     for j in 0..c.dim() {
-        let col = &mut ws.keys[..n];
-        for (i, k) in col.iter_mut().enumerate() {
-            *k = select::key(c.row(first + i)[j]);
+        let col = &mut ws.col[..n];
+        for (i, v) in col.iter_mut().enumerate() {
+            *v = c.row(first + i)[j];
         }
-        let (a, b) = select::central_pair(col, lo, hi);
-        emit(j, select::value(a), select::value(b));
+        let (below, upper, _) = col.select_nth_unstable_by(hi, f32::total_cmp);
+        let upper = *upper;
+        let lower = if lo == hi {
+            upper
+        } else {
+            below.iter().copied().fold(f32::NEG_INFINITY, f32::max)
+        };
+        emit(j, lower, upper);
     }
 }
 

@@ -558,6 +558,10 @@ pub struct ReportArgs {
     /// last component), cells paired by corruption and h.
     #[arg(long, value_name = "UNDEFENDED:DEFENDED", value_parser = parse_defence)]
     pub defence: Option<mte_eval::report::DefencePair>,
+    /// McNemar test on paired success: `exact` (default) or `chi2-cc` (chi-square with
+    /// continuity correction).
+    #[arg(long, default_value = "exact")]
+    pub mcnemar: mte_eval::report::McNemarTest,
     /// Film Figure 2 (the chosen episode with both arms, as a GIF and a strip of frames)
     /// into the report; runs the policy of the chosen cell twice.
     #[arg(long)]

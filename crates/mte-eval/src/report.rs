@@ -37,10 +37,13 @@ use std::path::{Path, PathBuf};
 
 use mte_ensemble::{BracketAccumulator, BracketRow};
 use mte_stats::{
-    McNemarResult, StatsError, binomial_se, holm, mcnemar_exact, mean_and_paired_se, paired_se,
+    McNemarResult, StatsError, binomial_se, holm, mean_and_paired_se, paired_se,
     recovered_fraction, wilcoxon_signed_rank, wilson_interval,
 };
 use serde::Serialize;
+
+/// The McNemar test a report uses ([`ReportOptions::mcnemar`]).
+pub use mte_stats::McNemarTest;
 
 use crate::label::{policy_label, slug};
 use crate::record::{CellSpec, EpisodeRecord, ErrorRecord, Line, Manifest, StageTimes};
@@ -76,6 +79,9 @@ pub struct ReportOptions {
     pub focus_cell: Option<String>,
     /// Compare a defended policy with an undefended one (section 9); none by default.
     pub defence: Option<DefencePair>,
+    /// The McNemar test on paired success: exact by default; the continuity-corrected
+    /// chi-square (the paper's tables appear to use it for n >= 100) by name.
+    pub mcnemar: McNemarTest,
 }
 
 /// Why a report could not be built or written.
@@ -260,6 +266,7 @@ fn compare(
     other: &[&EpisodeRecord],
     arm: &str,
     what: &str,
+    test: McNemarTest,
 ) -> Result<Comparison, ReportError> {
     let by_seed: HashMap<u64, &EpisodeRecord> = other.iter().map(|r| (r.seed, *r)).collect();
     let (mut xb, mut xo, mut sb, mut so) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -304,7 +311,7 @@ fn compare(
     } else {
         let b = sb.iter().zip(&so).filter(|&(&b, &o)| b && !o).count() as u64;
         let c = sb.iter().zip(&so).filter(|&(&b, &o)| !b && o).count() as u64;
-        Some(mcnemar_exact(b, c).map_err(stats_err(what))?)
+        Some(test.run(b, c).map_err(stats_err(what))?)
     };
     Ok(Comparison {
         arm: arm.to_string(),
@@ -411,7 +418,13 @@ fn denominator(
         "denominator: cell `{}` vs clean `{}`, arm `{arm}`",
         corrupted.spec.id, clean.spec.id
     );
-    let c = compare(corrupted.episodes(arm), clean.episodes(arm), arm, &what)?;
+    let c = compare(
+        corrupted.episodes(arm),
+        clean.episodes(arm),
+        arm,
+        &what,
+        corrupted.mcnemar,
+    )?;
     Ok(Some(Denominator::of(&c)))
 }
 
@@ -548,6 +561,8 @@ pub struct Report {
     pub clean_cells: Vec<FocusTable>,
     /// The episode of the paper's Figure 2, if one was found.
     pub figure2: Option<Figure2>,
+    /// The McNemar test of every comparison.
+    pub mcnemar: McNemarTest,
     /// Bracket tables, arms in run order (arms without bracket data left out).
     pub brackets: Vec<ArmBrackets>,
     /// `M`/`q` distributions of the ensemble arms.
@@ -584,6 +599,8 @@ pub struct ManifestInfo {
 /// The records of one cell, per arm, in seed order.
 struct CellData<'a> {
     spec: &'a CellSpec,
+    /// The McNemar test of every comparison ([`ReportOptions::mcnemar`]).
+    mcnemar: McNemarTest,
     /// The spec's arms, then arms only seen in records.
     arms: Vec<String>,
     eps: Vec<Vec<&'a EpisodeRecord>>,
@@ -591,7 +608,7 @@ struct CellData<'a> {
 }
 
 impl<'a> CellData<'a> {
-    fn new(spec: &'a CellSpec) -> Self {
+    fn new(spec: &'a CellSpec, mcnemar: McNemarTest) -> Self {
         let mut arms: Vec<String> = Vec::new();
         for a in &spec.arms {
             if !arms.contains(a) {
@@ -601,6 +618,7 @@ impl<'a> CellData<'a> {
         let eps = vec![Vec::new(); arms.len()];
         Self {
             spec,
+            mcnemar,
             arms,
             eps,
             seen: HashSet::new(),
@@ -708,7 +726,7 @@ pub fn build(
         failures,
         episodes,
         mut notes,
-    } = load_records(manifest, lines)?;
+    } = load_records(manifest, lines, opts.mcnemar)?;
     // Arms of the run, in order of first appearance.
     let mut all_arms: Vec<String> = Vec::new();
     for c in &cells {
@@ -763,6 +781,7 @@ pub fn build(
         focus,
         clean_cells,
         figure2,
+        mcnemar: opts.mcnemar,
         brackets,
         distributions,
         overhead,
@@ -782,14 +801,22 @@ struct Loaded<'a> {
 }
 
 /// Sorts `lines` into the manifest's cells, checking every episode record.
-fn load_records<'a>(manifest: &'a Manifest, lines: &'a [Line]) -> Result<Loaded<'a>, ReportError> {
+fn load_records<'a>(
+    manifest: &'a Manifest,
+    lines: &'a [Line],
+    mcnemar: McNemarTest,
+) -> Result<Loaded<'a>, ReportError> {
     let index: HashMap<&str, usize> = manifest
         .cells
         .iter()
         .enumerate()
         .map(|(i, c)| (c.id.as_str(), i))
         .collect();
-    let mut cells: Vec<CellData<'_>> = manifest.cells.iter().map(CellData::new).collect();
+    let mut cells: Vec<CellData<'_>> = manifest
+        .cells
+        .iter()
+        .map(|c| CellData::new(c, mcnemar))
+        .collect();
     let mut failures = Vec::new();
     let (mut episodes, mut duplicates) = (0usize, 0usize);
     for line in lines {
@@ -892,6 +919,7 @@ fn main_rows(
                 c.episodes(robust),
                 robust,
                 &what,
+                c.mcnemar,
             )?)
         } else {
             notes.push(format!(
@@ -920,6 +948,7 @@ fn main_rows(
                     cc.episodes(robust),
                     robust,
                     &what,
+                    cc.mcnemar,
                 )?)
             }
             None => None,
@@ -976,6 +1005,7 @@ fn clean_gap_note(
         clean.episodes(robust),
         robust,
         &what,
+        clean.mcnemar,
     )?;
     let (Some(d), Some(p)) = (gap.delta, gap.wilcoxon_p) else {
         return Ok(());
@@ -1230,7 +1260,7 @@ fn focus_table(
         };
         let vs_baseline = if arm != baseline && c.has(baseline) {
             let what = format!("cell `{id}`, `{arm}` vs `{baseline}`");
-            Some(compare(c.episodes(baseline), eps, arm, &what)?)
+            Some(compare(c.episodes(baseline), eps, arm, &what, c.mcnemar)?)
         } else {
             None
         };
@@ -1887,11 +1917,38 @@ mod tests {
             robust_arm: Some(EWM.into()),
             focus_cell: Some(Q2.into()),
             defence: None,
+            mcnemar: McNemarTest::Exact,
         };
         let r = build(&manifest(), &lines(), &opts).unwrap();
         let c = row(&r, Q1).comparison.as_ref().unwrap();
         assert!(c.delta.unwrap().mean < 0.0);
         assert_eq!(r.focus.cell, Q2);
+    }
+
+    /// The McNemar test is chosen by name: chi-square with continuity correction on the same
+    /// discordant pairs, named in the text.
+    #[test]
+    fn the_mcnemar_test_is_chosen_by_the_options() {
+        let opts = ReportOptions {
+            mcnemar: "chi2-cc".parse().unwrap(),
+            ..ReportOptions::default()
+        };
+        let r = build(&manifest(), &lines(), &opts).unwrap();
+        let m = row(&r, Q1).comparison.as_ref().unwrap().mcnemar.unwrap();
+        assert_eq!(m, mte_stats::mcnemar_chi2_corrected(m.b, m.c).unwrap());
+        let exact = report();
+        let e = row(&exact, Q1)
+            .comparison
+            .as_ref()
+            .unwrap()
+            .mcnemar
+            .unwrap();
+        assert_eq!((e.b, e.c), (m.b, m.c));
+        assert_ne!(e.p_value, m.p_value);
+        assert!(
+            r.markdown()
+                .contains("chi-square test with continuity correction")
+        );
     }
 
     /// The fixture run plus a defended policy `tuned`: clean and q = 1 cells only (no q = 2),

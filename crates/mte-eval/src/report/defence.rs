@@ -132,7 +132,7 @@ pub(super) fn build(
         for arm in arms.iter().filter(|a| d.has(a) && u.has(a)) {
             let what = format!("defence `{}` vs `{}`, arm `{arm}`", d.spec.id, u.spec.id);
             let (ue, de) = (u.episodes(arm), d.episodes(arm));
-            let comparison = compare(ue, de, arm, &what)?;
+            let comparison = compare(ue, de, arm, &what, d.mcnemar)?;
             let (us, ds) = (
                 (success_count(ue) as u64, ue.len() as u64),
                 (success_count(de) as u64, de.len() as u64),

@@ -172,7 +172,8 @@ fn recovered_plots(
                         continue;
                     }
                     let what = format!("cell `{}`, `{arm}` vs `{baseline}`", c.spec.id);
-                    let cmp = compare(c.episodes(baseline), c.episodes(arm), arm, &what)?;
+                    let cmp =
+                        compare(c.episodes(baseline), c.episodes(arm), arm, &what, c.mcnemar)?;
                     // Only where the denominator is significantly above zero.
                     let clean_mean = row_of(ci)
                         .filter(|r| {

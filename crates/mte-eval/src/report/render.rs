@@ -87,6 +87,16 @@ pub(super) fn table(head: &[&str], rows: Vec<Vec<String>>) -> Block {
     }
 }
 
+/// How the report names its McNemar test.
+fn mcnemar_name(t: mte_stats::McNemarTest) -> &'static str {
+    match t {
+        mte_stats::McNemarTest::Exact => "exact McNemar test",
+        mte_stats::McNemarTest::Chi2Corrected => {
+            "McNemar's chi-square test with continuity correction"
+        }
+    }
+}
+
 /// A clean reference as `coverage (success%)`, or a dash.
 pub(super) fn clean_cell_text(k: Option<&CleanRef>) -> String {
     k.map_or_else(
@@ -174,9 +184,10 @@ impl Report {
              confound of every comparison below); clean Δ (p): robust − baseline on that clean \
              cell per seed and its two-sided paired Wilcoxon p. Δ = robust − baseline per seed, \
              ± paired standard error. \
-             p (W): two-sided Wilcoxon signed-rank test on paired max coverage; p (McN): exact \
-             McNemar test on paired success, b:c = baseline-only : robust-only successes. Holm \
-             over the {} rows.",
+             p (W): two-sided Wilcoxon signed-rank test on paired max coverage; p (McN): {} \
+             on paired success, b:c = baseline-only : robust-only successes. Holm over the {} \
+             rows.",
+            mcnemar_name(self.mcnemar),
             self.main.len()
         )));
         if self.main.is_empty() {
@@ -405,12 +416,13 @@ impl Report {
             "(robust − baseline) / (clean − baseline) on mean max coverage and on success rate: \
              1 restores the clean baseline, 0 does nothing. n/a where undefined, and where the \
              denominator is not significantly above zero (the corruption does not lower the \
-             baseline: paired Wilcoxon on coverage, exact McNemar on success, p < 0.05 over \
+             baseline: paired Wilcoxon on coverage, {} on success, p < 0.05 over \
              the seeds both cells ran), since a fraction of noise is not meaningful. \
              Against own clean: 1 − (robust clean − robust) / (clean − baseline), the share of \
              the baseline's loss that the robust arm avoids measured from its own clean value, \
              so a clean-data gap between the arms is not counted as recovery. \
              Baseline {}, robust {}.",
+            mcnemar_name(self.mcnemar),
             code(&self.baseline),
             code(&self.robust)
         )));

@@ -10,9 +10,13 @@ import sys
 def row(path):
     d = json.load(open(path))
     c = d["candidates"]
+    cov = [e["max_coverage"] for e in d["episodes"]]
+    n = len(cov)
+    m = sum(cov) / n
+    se = (sum((x - m) ** 2 for x in cov) / (n - 1) / n) ** 0.5 if n > 1 else float("nan")
     ages = ", ".join(f"{x:.1f}" for x in c["by_age"][:7])
     return (f"| `{d['execution']}` | {d['sampling']} | {len(d['episodes'])} | "
-            f"{d['mean_max_coverage']:.3f} | {100 * d['success_rate']:.0f}% | "
+            f"{m:.3f} ± {se:.3f} | {100 * d['success_rate']:.0f}% | "
             f"{c['spread']:.1f} | {c['newest_to_mean']:.1f} | {c['newest_to_median']:.1f} | "
             f"{c['mean_to_nearest']:.1f} | {c['median_to_nearest']:.1f} | "
             f"{100 * c['split_fraction']:.1f}% | {ages} | {d['seconds']:.0f} s |")

@@ -7,7 +7,7 @@ use candle_core::Device;
 use mte_eval::Reporter as _;
 use mte_eval::train_data;
 use mte_policy::config::{DiffusionConfig, ObsKind};
-use mte_policy::pretrain::{EncoderPretrainConfig, pretrain_encoder};
+use mte_policy::pretrain::{EncoderPretrainConfig, pretrain_encoder, save_encoder};
 use mte_policy::train::{TrainConfig, TrainData, train};
 
 use crate::args::{Cli, Format, PolicyObsArg, PresetArg, TrainDiffusionArgs, TrainEncoderArgs};
@@ -108,14 +108,7 @@ pub fn encoder(cli: &Cli, a: &TrainEncoderArgs) -> Result<()> {
             bar.set(step as u64, figure);
         })?;
     bar.finish();
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let path = a.out.join("encoder.safetensors");
-    candle_core::safetensors::save(&weights, &path)
-        .with_context(|| format!("writing {}", path.display()))?;
-    let json = serde_json::json!({ "config": pc, "report": report });
-    let rp = a.out.join("pretrain.json");
-    std::fs::write(&rp, serde_json::to_string_pretty(&json)?)
-        .with_context(|| format!("writing {}", rp.display()))?;
+    let path = save_encoder(&a.out, &weights, &pc, &report)?;
     let mut out = std::io::stdout().lock();
     match cli.format {
         Format::Json => writeln!(out, "{}", serde_json::to_string(&report)?)?,

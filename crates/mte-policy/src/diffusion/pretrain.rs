@@ -101,6 +101,32 @@ pub struct PretrainReport {
     pub seconds: f64,
 }
 
+/// Writes a pre-trained encoder into `dir`: its weights as `encoder.safetensors` (policy
+/// keys, for [`crate::train::TrainConfig::init`]) and `pretrain.json` (the settings and the
+/// report). Returns the weights' path.
+pub fn save_encoder(
+    dir: &std::path::Path,
+    weights: &HashMap<String, Tensor>,
+    pc: &EncoderPretrainConfig,
+    report: &PretrainReport,
+) -> Result<std::path::PathBuf, PolicyError> {
+    let io = |path: &std::path::Path| {
+        let path = path.to_path_buf();
+        move |source| PolicyError::Io { path, source }
+    };
+    std::fs::create_dir_all(dir).map_err(io(dir))?;
+    let path = dir.join("encoder.safetensors");
+    candle_core::safetensors::save(weights, &path)?;
+    let json = serde_json::json!({ "config": pc, "report": report });
+    let rp = dir.join("pretrain.json");
+    let text = serde_json::to_string_pretty(&json).map_err(|source| PolicyError::Json {
+        path: rp.clone(),
+        source,
+    })?;
+    std::fs::write(&rp, text).map_err(io(&rp))?;
+    Ok(path)
+}
+
 /// Pre-train the encoder of an image policy of `config` on `data` (which must carry
 /// `env_state` and images). Returns the encoder's weights under their policy keys
 /// (`diffusion.rgb_encoder.…`, ready for [`crate::train::TrainConfig::init`]) and a report.

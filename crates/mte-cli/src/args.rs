@@ -589,6 +589,21 @@ pub enum AttackCommand {
     /// Train a physical patch against an image policy on demonstration windows (writes
     /// patch.png + patch.json; evaluate it with `fault = { kind = "patch", path = ... }`).
     Patch(AttackPatchArgs),
+    /// Make the control of a trained patch: the same square at the same place, filled with
+    /// the patch's mean colour (evaluate it beside the patch: the patch's effect beyond it is
+    /// its pattern's, not the occlusion's).
+    Control(AttackControlArgs),
+}
+
+/// `mte attack control`
+#[derive(Debug, Args)]
+pub struct AttackControlArgs {
+    /// The trained patch directory (patch.png + patch.json).
+    #[arg(long, value_name = "DIR")]
+    pub patch: PathBuf,
+    /// Where to write the control patch directory.
+    #[arg(long, short, value_name = "DIR")]
+    pub out: PathBuf,
 }
 
 /// Patch ascent rule.

@@ -26,6 +26,7 @@ fn main() -> ExitCode {
         Command::Synthetic(a) => cmd::synthetic::run(&cli, a),
         Command::Attack(AttackCommand::Calibrate(a)) => cmd::attack::calibrate(&cli, a),
         Command::Attack(AttackCommand::Patch(a)) => cmd::attack::patch(&cli, a),
+        Command::Attack(AttackCommand::Control(a)) => cmd::attack::control(&cli, a),
         Command::Defend(DefendCommand::Finetune(a)) => cmd::attack::finetune(&cli, a),
         Command::Defend(DefendCommand::Probe(a)) => cmd::attack::probe(&cli, a),
         Command::Ensemble(EnsembleCommand::Replay(a)) => cmd::replay::run(&cli, a),

@@ -517,6 +517,21 @@ fn patch_finetune_and_probe_run_end_to_end() {
     assert_eq!(meta["origin"], serde_json::json!([13, 69]));
     assert_eq!(meta["epoch_loss"].as_array().unwrap().len(), 2);
     assert!(p("patch/patch.png").exists());
+    // Its control: the same square and place, uniform.
+    mte()
+        .args(["attack", "control", "--patch"])
+        .arg(p("patch"))
+        .arg("--out")
+        .arg(p("grey"))
+        .assert()
+        .success()
+        .stdout(predicate::str::contains("12 px at world (100, 400)"));
+    let grey: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(p("grey/patch.json")).unwrap()).unwrap();
+    assert_eq!(
+        (&grey["origin"], &grey["epochs"]),
+        (&meta["origin"], &serde_json::json!(0))
+    );
     mte()
         .args([
             "--quiet",

@@ -187,9 +187,76 @@ pub fn load(dir: &Path) -> Result<(PatchMeta, Patch), PatchFileError> {
     Ok((meta, patch))
 }
 
+/// Writes into `dst` the control of the patch in `src`: a square of the same size at the
+/// same world position, filled uniformly with the patch's mean colour (per channel, rounded).
+/// It occludes the same area with the same mean intensity, so the adversarial patch's effect
+/// beyond it is the effect of its pattern. The metadata is the source's with `epochs = 0`,
+/// `step = 0` and no loss curve. Returns the control's metadata.
+pub fn mean_colour_control(src: &Path, dst: &Path) -> Result<PatchMeta, PatchFileError> {
+    let (meta, patch) = load(src)?;
+    let rgb = patch.rgb();
+    let n = (rgb.len() / 3).max(1) as f64;
+    let mean: Vec<u8> = (0..3)
+        .map(|c| {
+            let sum: f64 = rgb.iter().skip(c).step_by(3).map(|&v| f64::from(v)).sum();
+            (sum / n).round().clamp(0.0, 255.0) as u8
+        })
+        .collect();
+    let flat: Vec<u8> = (0..rgb.len()).map(|i| mean[i % 3]).collect();
+    let control = PatchMeta {
+        step: 0.0,
+        epochs: 0,
+        initial_loss: 0.0,
+        epoch_loss: Vec::new(),
+        ..meta
+    };
+    save(dst, &control, &flat)?;
+    Ok(control)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_control_is_the_patch_s_mean_colour_at_the_same_place() {
+        let (a, b) = (
+            tempfile::tempdir().expect("tmp"),
+            tempfile::tempdir().expect("tmp"),
+        );
+        let report = PatchReport {
+            texture: vec![0.5; 3 * 4 * 4],
+            side: 4,
+            origin: (10, 20),
+            initial_loss: 0.1,
+            epoch_loss: vec![0.2],
+        };
+        let meta = PatchMeta::new(
+            &PatchConfig::default(),
+            &report,
+            [100.0, 300.0],
+            [96, 96],
+            Path::new("ck"),
+        );
+        // Red channel 0 or 255 alternately (mean 127.5 -> 128), green 10, blue 0..16.
+        let rgb: Vec<u8> = (0..16)
+            .flat_map(|i| [if i % 2 == 0 { 0 } else { 255 }, 10, i as u8])
+            .collect();
+        save(a.path(), &meta, &rgb).expect("save");
+        let c = mean_colour_control(a.path(), b.path()).expect("control");
+        let (m, p) = load(b.path()).expect("load");
+        assert_eq!(m, c);
+        assert_eq!(
+            (m.side, m.center, m.origin, m.epochs),
+            (4, [100.0, 300.0], [10, 20], 0)
+        );
+        assert!(
+            p.rgb().chunks(3).all(|px| px == [128, 10, 8]),
+            "{:?}",
+            &p.rgb()[..6]
+        );
+        assert!(mean_colour_control(Path::new("no/such/patch"), b.path()).is_err());
+    }
 
     #[test]
     fn round_trips_and_rejects_a_mismatched_png() {

@@ -249,3 +249,20 @@ pub fn probe(cli: &Cli, a: &crate::args::ProbeArgs) -> Result<()> {
     }
     Ok(())
 }
+
+/// `mte attack control`
+pub fn control(cli: &Cli, a: &crate::args::AttackControlArgs) -> Result<()> {
+    let meta = mte_eval::patch_file::mean_colour_control(&a.patch, &a.out)?;
+    if !cli.quiet {
+        writeln!(
+            std::io::stdout(),
+            "wrote the mean-colour control of {} ({} px at world ({:.0}, {:.0})) to {}",
+            a.patch.display(),
+            meta.side,
+            meta.center[0],
+            meta.center[1],
+            a.out.display()
+        )?;
+    }
+    Ok(())
+}

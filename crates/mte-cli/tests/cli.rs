@@ -728,3 +728,42 @@ fn a_sweep_with_failed_cells_exits_non_zero() {
     let stdout = String::from_utf8(out.get_output().stdout.clone()).unwrap();
     assert!(stdout.contains("1 errors"), "{stdout}");
 }
+
+/// `mte film` draws one episode twice; bad panel sizes and unknown McNemar tests are
+/// rejected with exit 2 naming the value and what is accepted.
+#[test]
+fn film_writes_both_figures_and_bad_values_exit_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let policy = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../assets/policies/pusht_keypoints_cpu"
+    );
+    let v = json_stdout(
+        mte()
+            .args(["--format", "json", "film", "--policy", policy])
+            .args(["--max-steps", "12", "--size", "32", "--q", "2", "--out"])
+            .arg(dir.path()),
+    );
+    let films = v["films"].as_array().unwrap();
+    assert_eq!(films.len(), 2);
+    assert_eq!(
+        (films[0]["arm"].as_str(), films[1]["arm"].as_str()),
+        (Some("ewm:0.01"), Some("median"))
+    );
+    assert!(dir.path().join("figure2.gif").exists());
+    assert!(dir.path().join("figure2-strip.png").exists());
+    mte()
+        .args(["film", "--policy", policy, "--size", "8", "--out"])
+        .arg(dir.path())
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains(
+            "`size` = 8: expected 32..=1024 px",
+        ));
+    mte()
+        .args(["report", "--mcnemar", "chi3"])
+        .arg(dir.path())
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("expected `exact` or `chi2-cc`"));
+}

@@ -602,3 +602,36 @@ fn a_film_is_the_episode_with_one_flagged_frame_per_step() -> TestResult {
     assert!(mte_eval::film::film(&p, &s, 8).is_err(), "panel too small");
     Ok(())
 }
+
+/// Fixed sampling gives every query of an episode the same noise stream; independent
+/// sampling a different one per query (and the default is independent).
+#[test]
+fn fixed_sampling_repeats_the_noise_stream_at_every_query() -> TestResult {
+    let draws = |sampling| -> Result<Vec<u32>, Box<dyn std::error::Error>> {
+        let p = Scripted::new(0.0);
+        let s = EpisodeSpec {
+            sampling,
+            ..spec(Execution::OpenLoop, &CorruptionSpec::CLEAN, 2)
+        };
+        run_episode(&p, &s)?;
+        let seen = p.seen.lock().map_err(|_| "poisoned")?.clone();
+        Ok(seen.into_iter().map(|(_, d)| d).collect())
+    };
+    let fixed = draws(mte_eval::pusht::Sampling::Fixed)?;
+    assert!(
+        fixed.len() > 2 && fixed.iter().all(|&d| d == fixed[0]),
+        "{fixed:?}"
+    );
+    let independent = draws(mte_eval::pusht::Sampling::Independent)?;
+    let distinct: HashSet<u32> = independent.iter().copied().collect();
+    assert_eq!(distinct.len(), independent.len());
+    assert_eq!(
+        independent[0], fixed[0],
+        "query 0 draws the same stream either way"
+    );
+    assert_eq!(
+        mte_eval::pusht::Sampling::default(),
+        mte_eval::pusht::Sampling::Independent
+    );
+    Ok(())
+}

@@ -536,7 +536,7 @@ impl Overhead {
 }
 
 /// The report of a run.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Report {
     /// Run name.
     pub name: String,
@@ -576,6 +576,7 @@ pub struct Report {
     /// Remarks on the data (duplicates, unpaired seeds, missing arms).
     pub notes: Vec<String>,
     /// Plots.
+    #[serde(skip)]
     pub plots: Vec<Plot>,
 }
 
@@ -1843,7 +1844,20 @@ mod tests {
         let files = r.write(&out).unwrap();
         assert_eq!(files[0], out.join("report.md"));
         assert_eq!(files[1], out.join("report.html"));
-        assert_eq!(files.len(), 2 + 2 * r.plots.len());
+        assert_eq!(files[2], out.join("report.json"));
+        assert_eq!(files.len(), 3 + 2 * r.plots.len());
+        // The tables as data: the main table's recovered fraction and its denominator test.
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&files[2]).unwrap()).unwrap();
+        let main = json["main"].as_array().unwrap();
+        assert_eq!(main.len(), r.main.len());
+        let rec = &main[0]["recovered"];
+        assert_eq!(rec["coverage"].as_f64(), r.main[0].recovered.coverage);
+        assert!(rec["denominator"]["coverage_p"].as_f64().is_some());
+        assert_eq!(
+            json["figure2"]["seed"].as_u64(),
+            r.figure2.as_ref().map(|f| f.seed)
+        );
         let (mut png, mut svg) = (0, 0);
         for f in &files {
             let bytes = std::fs::read(f).unwrap();

@@ -801,9 +801,9 @@ impl Report {
         out
     }
 
-    /// Writes `report.md`, `report.html` and every plot as `plots/<name>.svg` and
-    /// `plots/<name>.png` into `dir` (created if needed); returns the paths written, in that
-    /// order.
+    /// Writes `report.md`, `report.html`, `report.json` (the tables as data: every field of
+    /// the report but the plots) and every plot as `plots/<name>.svg` and `plots/<name>.png`
+    /// into `dir` (created if needed); returns the paths written, in that order.
     ///
     /// # Errors
     ///
@@ -823,6 +823,10 @@ impl Report {
         };
         put(dir.join("report.md"), self.markdown().as_bytes())?;
         put(dir.join("report.html"), self.html().as_bytes())?;
+        let json_path = dir.join("report.json");
+        let json = serde_json::to_string_pretty(self)
+            .map_err(|e| io(&json_path)(std::io::Error::other(e)))?;
+        put(json_path, json.as_bytes())?;
         for p in &self.plots {
             put(plots_dir.join(format!("{}.svg", p.name)), p.svg.as_bytes())?;
             put(plots_dir.join(format!("{}.png", p.name)), &p.png()?)?;

@@ -83,18 +83,17 @@ impl EpisodeObserver for CandidateSpread {
             / m as f64;
         self.steps += 1;
         self.spread += spread.sqrt();
-        self.mean_to_median += dist64(&self.mean, &self.median);
+        self.mean_to_median += dist(&self.mean, &self.median);
         self.mean_to_nearest += near(&self.mean);
         self.median_to_nearest += near(&self.median);
         self.newest_to_mean += dist(newest, &self.mean);
         self.newest_to_median += dist(newest, &self.median);
         self.split_steps += u64::from(m >= 3 && splits(&rows, &mut self.scratch));
-        let newest64: Vec<f64> = newest.iter().map(|&x| f64::from(x)).collect();
         for (k, r) in rows.iter().rev().enumerate().skip(1) {
             if self.age.len() < k {
                 self.age.resize(k, (0.0, 0));
             }
-            self.age[k - 1].0 += dist(r, &newest64);
+            self.age[k - 1].0 += dist(r, newest);
             self.age[k - 1].1 += 1;
         }
     }
@@ -135,19 +134,11 @@ impl CandidateSpread {
     }
 }
 
-/// Distance between an `f32` row and an `f64` point.
-fn dist(a: &[f32], b: &[f64]) -> f64 {
+/// Euclidean distance between two points (rows of `f32` or `f64`).
+fn dist<A: Copy + Into<f64>, B: Copy + Into<f64>>(a: &[A], b: &[B]) -> f64 {
     a.iter()
         .zip(b)
-        .map(|(&x, &y)| (f64::from(x) - y).powi(2))
-        .sum::<f64>()
-        .sqrt()
-}
-
-fn dist64(a: &[f64], b: &[f64]) -> f64 {
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).powi(2))
+        .map(|(&x, &y)| (x.into() - y.into()).powi(2))
         .sum::<f64>()
         .sqrt()
 }
@@ -159,8 +150,7 @@ fn splits(rows: &[&[f32]], proj: &mut Vec<f64>) -> bool {
     let (mut a, mut b, mut far) = (0, 0, 0.0);
     for i in 0..rows.len() {
         for j in i + 1..rows.len() {
-            let r: Vec<f64> = rows[j].iter().map(|&x| f64::from(x)).collect();
-            let d = dist(rows[i], &r);
+            let d = dist(rows[i], rows[j]);
             if d > far {
                 (a, b, far) = (i, j, d);
             }

@@ -891,8 +891,9 @@ fn main_rows(
     notes: &mut Vec<String>,
 ) -> Result<Vec<MainRow>, ReportError> {
     let mut main = Vec::new();
-    // Clean cells whose gap between the arms was tested: once each, not once per row.
-    let mut gap_tested = Vec::new();
+    // Each clean cell's robust-vs-baseline comparison: made (and its gap noted) once, not
+    // once per row it is shown beside.
+    let mut clean_tests: Vec<(usize, Option<Comparison>)> = Vec::new();
     for &ci in corrupted {
         let c = &cells[ci];
         let clean_at = clean_of(cells, ci);
@@ -906,13 +907,10 @@ fn main_rows(
             Some(cc) => clean_ref(cc, robust)?,
             None => None,
         };
-        if let Some(cj) = clean_at.filter(|cj| !gap_tested.contains(cj)) {
-            gap_tested.push(cj);
-            let cc = &cells[cj];
-            if cc.has(robust) && cc.has(baseline) {
-                clean_gap_note(cc, (baseline, robust), notes)?;
-            }
-        }
+        let clean_comparison = match clean_at {
+            Some(cj) => clean_test(&cells[cj], cj, (baseline, robust), &mut clean_tests, notes)?,
+            None => None,
+        };
         let comparison = if c.has(baseline) && c.has(robust) {
             let what = format!("cell `{}`, `{robust}` vs `{baseline}`", c.spec.id);
             Some(compare(
@@ -941,19 +939,6 @@ fn main_rows(
             comparison.as_ref(),
             den,
         );
-        let clean_comparison = match clean_cell.filter(|cc| cc.has(robust) && cc.has(baseline)) {
-            Some(cc) => {
-                let what = format!("clean cell `{}`, `{robust}` vs `{baseline}`", cc.spec.id);
-                Some(compare(
-                    cc.episodes(baseline),
-                    cc.episodes(robust),
-                    robust,
-                    &what,
-                    cc.mcnemar,
-                )?)
-            }
-            None => None,
-        };
         main.push(MainRow {
             cell: c.spec.id.clone(),
             policy: c.spec.policy.clone(),
@@ -990,29 +975,52 @@ fn main_rows(
     Ok(main)
 }
 
-/// A note when the two arms differ significantly on the clean cell `clean`: the confound
-/// that every comparison and recovered fraction of that policy and h carries.
+/// The robust-vs-baseline comparison on the clean cell `clean` (index `cj`), from `tests`
+/// when it was made for an earlier row, else made, noted ([`clean_gap_note`]) and kept.
+fn clean_test(
+    clean: &CellData<'_>,
+    cj: usize,
+    (baseline, robust): (&str, &str),
+    tests: &mut Vec<(usize, Option<Comparison>)>,
+    notes: &mut Vec<String>,
+) -> Result<Option<Comparison>, ReportError> {
+    if let Some((_, c)) = tests.iter().find(|(j, _)| *j == cj) {
+        return Ok(c.clone());
+    }
+    let gap = if clean.has(robust) && clean.has(baseline) {
+        let what = format!(
+            "clean gap: cell `{}`, `{robust}` vs `{baseline}`",
+            clean.spec.id
+        );
+        let gap = compare(
+            clean.episodes(baseline),
+            clean.episodes(robust),
+            robust,
+            &what,
+            clean.mcnemar,
+        )?;
+        clean_gap_note(clean, &gap, (baseline, robust), notes);
+        Some(gap)
+    } else {
+        None
+    };
+    tests.push((cj, gap.clone()));
+    Ok(gap)
+}
+
+/// A note when the two arms differ significantly (`gap`) on the clean cell `clean`: the
+/// confound that every comparison and recovered fraction of that policy and h carries.
 fn clean_gap_note(
     clean: &CellData<'_>,
+    gap: &Comparison,
     (baseline, robust): (&str, &str),
     notes: &mut Vec<String>,
-) -> Result<(), ReportError> {
-    let what = format!(
-        "clean gap: cell `{}`, `{robust}` vs `{baseline}`",
-        clean.spec.id
-    );
-    let gap = compare(
-        clean.episodes(baseline),
-        clean.episodes(robust),
-        robust,
-        &what,
-        clean.mcnemar,
-    )?;
+) {
     let (Some(d), Some(p)) = (gap.delta, gap.wilcoxon_p) else {
-        return Ok(());
+        return;
     };
     if p >= DENOMINATOR_ALPHA {
-        return Ok(());
+        return;
     }
     notes.push(format!(
         "clean-data confound: on the clean cell `{}`, `{robust}` − `{baseline}` = {} (paired \
@@ -1023,7 +1031,6 @@ fn clean_gap_note(
         fmt_p(p),
         gap.n
     ));
-    Ok(())
 }
 
 /// Section 2's cell: the one asked for, else the corrupted cell with the most arms.

@@ -4,9 +4,7 @@
 //! do not depend on the number of threads or on scheduling (a test checks 1 thread against
 //! many). A step splits the environments into one contiguous block per thread (the thread
 //! count is rayon's, so `RAYON_NUM_THREADS` and `ThreadPool::install` set it); the calling
-//! thread steps the first block and scoped threads the others. Resets use rayon's pool.
-
-use rayon::prelude::*;
+//! thread takes the first block and scoped threads the others, for steps and resets alike.
 
 /// The fewest environments stepped on several threads; fewer run on the calling thread. A
 /// step is 10-20 us of physics, and starting a thread costs about as much
@@ -58,21 +56,7 @@ impl VecEnv {
                 envs: self.envs.len(),
             });
         }
-        if !self.parallel() {
-            return self
-                .envs
-                .iter_mut()
-                .zip(seeds)
-                .map(|(e, &s)| e.reset(s, stream))
-                .collect();
-        }
-        let chunk = self.chunk();
-        self.envs
-            .par_iter_mut()
-            .zip(seeds.par_iter())
-            .with_min_len(chunk)
-            .map(|(e, &s)| e.reset(s, stream))
-            .collect()
+        self.map_envs(seeds, |e, &s| e.reset(s, stream))
     }
 
     /// Step environment `i` towards `actions[i]`. On error no environment is stepped.
@@ -86,33 +70,44 @@ impl VecEnv {
         if let Some(a) = actions.iter().find(|a| !a.iter().all(|v| v.is_finite())) {
             return Err(SimError::NonFiniteAction { action: *a });
         }
+        self.map_envs(actions, |e, &a| e.step(a))
+    }
+
+    /// `f(env i, &inputs[i])` for every environment, in order: on the calling thread below
+    /// [`PARALLEL_MIN_ENVS`], else one contiguous block per thread, the calling thread taking
+    /// the first and scoped threads the others (a tick wakes `threads - 1` threads and
+    /// nothing waits on a pool's sleeping workers).
+    fn map_envs<A: Sync, R: Send>(
+        &mut self,
+        inputs: &[A],
+        f: impl Fn(&mut PushT, &A) -> Result<R, SimError> + Sync,
+    ) -> Result<Vec<R>, SimError> {
         if !self.parallel() {
             return self
                 .envs
                 .iter_mut()
-                .zip(actions)
-                .map(|(e, &a)| e.step(a))
+                .zip(inputs)
+                .map(|(e, a)| f(e, a))
                 .collect();
         }
         let chunk = self.chunk();
-        let mut out: Vec<Result<StepInfo, SimError>> = Vec::with_capacity(self.envs.len());
-        // One block per thread; the calling thread steps the first block itself, so a tick
-        // wakes `threads - 1` scoped threads and nothing waits on a pool's sleeping workers.
+        let f = &f;
+        let mut out: Vec<Result<R, SimError>> = Vec::with_capacity(self.envs.len());
         std::thread::scope(|scope| {
-            let mut blocks = self.envs.chunks_mut(chunk).zip(actions.chunks(chunk));
+            let mut blocks = self.envs.chunks_mut(chunk).zip(inputs.chunks(chunk));
             let first = blocks.next();
             let handles: Vec<_> = blocks
-                .map(|(envs, acts)| {
+                .map(|(envs, ins)| {
                     scope.spawn(move || {
                         envs.iter_mut()
-                            .zip(acts)
-                            .map(|(e, &a)| e.step(a))
+                            .zip(ins)
+                            .map(|(e, a)| f(e, a))
                             .collect::<Vec<_>>()
                     })
                 })
                 .collect();
-            if let Some((envs, acts)) = first {
-                out.extend(envs.iter_mut().zip(acts).map(|(e, &a)| e.step(a)));
+            if let Some((envs, ins)) = first {
+                out.extend(envs.iter_mut().zip(ins).map(|(e, a)| f(e, a)));
             }
             for h in handles {
                 // A worker only panics on a bug; its panic continues here.

@@ -471,9 +471,13 @@ pub struct DemoArgs {
     /// Query stride h.
     #[arg(long, default_value_t = 2, value_parser = at_least_one)]
     pub stride: usize,
-    /// Parallel episodes (default: all cores).
+    /// Worker threads (default: all cores).
     #[arg(long)]
     pub workers: Option<usize>,
+    /// Episodes of a cell run in lockstep, the policy answering their queries in one batch
+    /// (the records do not depend on it); 1 runs each episode alone.
+    #[arg(long, default_value_t = mte_eval::sweep::RunOptions::DEFAULT_BATCH, value_parser = at_least_one)]
+    pub batch: usize,
     /// Run directory; an existing run of the same grid is resumed.
     #[arg(long, short, value_name = "DIR", default_value = "runs/demo")]
     pub out: PathBuf,
@@ -531,9 +535,13 @@ pub struct SweepArgs {
     /// Run only shard `i/n` of the cells (e.g. a Slurm array index); shards may share `--out`.
     #[arg(long, default_value = "0/1")]
     pub shard: mte_eval::sweep::Shard,
-    /// Parallel episodes (default: all cores).
+    /// Worker threads (default: all cores).
     #[arg(long)]
     pub workers: Option<usize>,
+    /// Episodes of a cell run in lockstep, the policy answering their queries in one batch
+    /// (the records do not depend on it); 1 runs each episode alone.
+    #[arg(long, default_value_t = mte_eval::sweep::RunOptions::DEFAULT_BATCH, value_parser = at_least_one)]
+    pub batch: usize,
 }
 
 /// `mte report`

@@ -31,6 +31,7 @@ pub mod environment;
 pub mod episode;
 pub mod film;
 mod label;
+pub mod lockstep;
 pub mod machine;
 pub mod patch_file;
 pub mod pusht;

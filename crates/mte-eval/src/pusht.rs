@@ -33,7 +33,7 @@ use mte_ensemble::{
     Aggregator, BracketAccumulator, CandidateHook, Candidates, CandidatesMut, ChunkGeometry,
     EnsembleError, EnsemblerOptions, NoHook, QueryMeta, TemporalEnsembler,
 };
-use mte_policy::{ChunkPolicy, Observation, PolicyError};
+use mte_policy::{ChunkPolicy, Observation, PgdConfig, PolicyError};
 use mte_sim::{ResetStream, SimError};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -383,10 +383,21 @@ impl EpisodeObserver for Recorder {
 }
 
 /// The runner's own observers (the record, the stage timer) and the caller's, told alike.
-struct Watchers<'o> {
+pub(crate) struct Watchers<'o> {
     rec: Recorder,
     timer: StageTimer,
     user: &'o mut dyn EpisodeObserver,
+}
+
+impl<'o> Watchers<'o> {
+    /// Fresh record and timer, and the caller's observer.
+    pub(crate) fn new(user: &'o mut dyn EpisodeObserver) -> Self {
+        Watchers {
+            rec: Recorder::default(),
+            timer: StageTimer::default(),
+            user,
+        }
+    }
 }
 
 impl EpisodeObserver for Watchers<'_> {
@@ -413,8 +424,7 @@ enum Executor {
 }
 
 /// One episode of one arm, between stages.
-struct Episode<'e, 'p, 's> {
-    policy: &'p dyn ChunkPolicy,
+pub(crate) struct Episode<'e, 's> {
     spec: &'s EpisodeSpec<'s>,
     geometry: ChunkGeometry,
     env: &'e mut dyn Environment,
@@ -461,48 +471,80 @@ pub fn run_episode_in(
     observer: &mut dyn EpisodeObserver,
 ) -> Result<EpisodeRecord, RolloutError> {
     let t_start = Instant::now();
-    let mut w = Watchers {
-        rec: Recorder::default(),
-        timer: StageTimer::default(),
-        user: observer,
-    };
+    let mut w = Watchers::new(observer);
     let mut ep = Episode::new(env, policy, spec, &mut w)?;
-    while ep.steps < spec.max_steps {
+    while !ep.over() {
         ep.observe(&mut w)?;
-        if ep.steps % spec.h == 0 {
-            let event = ep.query(&mut w)?;
+        if let Some(p) = ep.prepare(&mut w)? {
+            let t = Instant::now();
+            let chunk = p.answer_alone(policy)?;
+            w.on_stage(p.stage(), t.elapsed().as_secs_f64());
+            let event = ep.accept(&p, chunk, &mut w)?;
             w.on_query(&event);
         }
-        let event = ep.decide(&mut w)?;
-        w.on_step(&event);
-        if ep.step(&mut w)? {
-            break;
-        }
+        ep.act(&mut w)?;
     }
-    let (rec, mut times) = (w.rec, w.timer.times);
-    times.total_s = t_start.elapsed().as_secs_f64();
-    let ensembled = matches!(spec.execution, Execution::Ensemble(_));
-    Ok(EpisodeRecord {
-        cell: String::new(),
-        arm: spec.execution.to_string(),
-        seed: spec.seed,
-        success: ep.success,
-        max_coverage: ep.max_coverage,
-        steps: ep.steps,
-        queries: rec.queries,
-        corrupted_queries: rec.corrupted_queries,
-        m_counts: rec.m_counts,
-        q_counts: rec.q_counts,
-        bracket: (!spec.corruption.is_clean() && ensembled).then_some(rec.bracket),
-        times,
-    })
+    Ok(ep.record(w, t_start))
 }
 
-impl<'e, 'p, 's> Episode<'e, 'p, 's> {
+/// A query made ready by stage *corrupt*: the window the policy sees, whether the query is
+/// corrupted, PGD's settings when it attacks it, and the query's two streams as they stand
+/// after the corruption drew from them.
+pub(crate) struct Pending {
+    index: u64,
+    window: Vec<Observation>,
+    corrupted: bool,
+    attack: Option<PgdConfig>,
+    crng: ChaCha8Rng,
+    srng: ChaCha8Rng,
+}
+
+impl Pending {
+    /// The stage its answer is timed under: PGD is corruption, a plain query is *query*.
+    pub(crate) fn stage(&self) -> Stage {
+        if self.attack.is_some() {
+            Stage::Corrupt
+        } else {
+            Stage::Query
+        }
+    }
+
+    /// PGD's settings, when PGD attacks this query.
+    pub(crate) fn attack(&self) -> Option<&PgdConfig> {
+        self.attack.as_ref()
+    }
+
+    /// The window the policy sees.
+    pub(crate) fn window(&self) -> &[Observation] {
+        &self.window
+    }
+
+    /// Copies of the (attack, sampling) streams: the batch and the single answer both start
+    /// from them, so a failed batch can be answered again query by query.
+    pub(crate) fn streams(&self) -> (ChaCha8Rng, ChaCha8Rng) {
+        (self.crng.clone(), self.srng.clone())
+    }
+
+    /// The chunk this query gets asked alone.
+    pub(crate) fn answer_alone(&self, policy: &dyn ChunkPolicy) -> Result<Vec<f32>, PolicyError> {
+        let (mut crng, mut srng) = self.streams();
+        match &self.attack {
+            Some(cfg) => mte_policy::attackable(policy)?.predict_chunk_attacked(
+                &self.window,
+                cfg,
+                &mut crng,
+                &mut srng,
+            ),
+            None => policy.predict_chunk(&self.window, &mut srng),
+        }
+    }
+}
+
+impl<'e, 's> Episode<'e, 's> {
     /// Checks the spec, resets the environment and builds the arm's executor.
-    fn new(
+    pub(crate) fn new(
         env: &'e mut dyn Environment,
-        policy: &'p dyn ChunkPolicy,
+        policy: &dyn ChunkPolicy,
         spec: &'s EpisodeSpec<'s>,
         w: &mut dyn EpisodeObserver,
     ) -> Result<Self, RolloutError> {
@@ -549,7 +591,6 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
             .map_or(t_o, |c| c.frames_needed(t_o))
             .max(t_o + 1);
         Ok(Self {
-            policy,
             spec,
             geometry,
             max_coverage: score,
@@ -568,7 +609,7 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
     }
 
     /// Stage *observe*: the current observation joins the history.
-    fn observe(&mut self, w: &mut dyn EpisodeObserver) -> Result<(), RolloutError> {
+    pub(crate) fn observe(&mut self, w: &mut dyn EpisodeObserver) -> Result<(), RolloutError> {
         let t = Instant::now();
         let o = self.env.observe(self.spec.needs)?;
         w.on_stage(Stage::Observe, t.elapsed().as_secs_f64());
@@ -581,10 +622,22 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
         Ok(())
     }
 
-    /// Stages *corrupt* and *query*: query `i = steps / h`, its chunk into the executor.
-    fn query(&mut self, w: &mut dyn EpisodeObserver) -> Result<QueryEvent<'_>, RolloutError> {
+    /// Whether the episode is over (solved, or at its step limit).
+    pub(crate) fn over(&self) -> bool {
+        self.success || self.steps >= self.spec.max_steps
+    }
+
+    /// Stage *corrupt* at a query time (`steps` a multiple of `h`): query `i = steps / h`'s
+    /// schedule decision and window, ready for the policy; `None` between queries.
+    pub(crate) fn prepare(
+        &mut self,
+        w: &mut dyn EpisodeObserver,
+    ) -> Result<Option<Pending>, RolloutError> {
         let spec = self.spec;
         let (steps, t_o) = (self.steps, self.geometry.t_o);
+        if steps % spec.h != 0 {
+            return Ok(None);
+        }
         let i = (steps / spec.h) as u64;
         let t = Instant::now();
         let mut crng = query_rng(spec.noise_seed, spec.seed, i, 1);
@@ -598,21 +651,29 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
             None => self.frames[self.frames.len() - t_o..].to_vec(),
         };
         w.on_stage(Stage::Corrupt, t.elapsed().as_secs_f64());
-        let t = Instant::now();
-        let mut srng = query_rng(spec.noise_seed, spec.seed, spec.sampling.stream_of(i), 0);
-        self.chunk = match &spec.corruption.fault {
-            Fault::Query(QueryAttack::Pgd(cfg)) if corrupted => {
-                let c = mte_policy::attackable(self.policy)?
-                    .predict_chunk_attacked(&window, cfg, &mut crng, &mut srng)?;
-                w.on_stage(Stage::Corrupt, t.elapsed().as_secs_f64());
-                c
-            }
-            _ => {
-                let c = self.policy.predict_chunk(&window, &mut srng)?;
-                w.on_stage(Stage::Query, t.elapsed().as_secs_f64());
-                c
-            }
+        let attack = match &spec.corruption.fault {
+            Fault::Query(QueryAttack::Pgd(cfg)) if corrupted => Some(cfg.clone()),
+            _ => None,
         };
+        Ok(Some(Pending {
+            index: i,
+            window,
+            corrupted,
+            attack,
+            crng,
+            srng: query_rng(spec.noise_seed, spec.seed, spec.sampling.stream_of(i), 0),
+        }))
+    }
+
+    /// The rest of stage *query*: `chunk`, the policy's answer to `p`, into the executor.
+    pub(crate) fn accept(
+        &mut self,
+        p: &Pending,
+        chunk: Vec<f32>,
+        w: &mut dyn EpisodeObserver,
+    ) -> Result<QueryEvent<'_>, RolloutError> {
+        let (steps, corrupted) = (self.steps, p.corrupted);
+        self.chunk = chunk;
         // Common-mode bias acts while the newest query is corrupted.
         if let CandidateFault::CommonMode(s) = &mut self.candidate_fault {
             s.on = corrupted;
@@ -627,11 +688,41 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
         }
         w.on_stage(Stage::Ensemble, t.elapsed().as_secs_f64());
         Ok(QueryEvent {
-            index: i,
+            index: p.index,
             t: steps as u64,
             chunk: &self.chunk,
             corrupted,
         })
+    }
+
+    /// Stages *ensemble*, *act* and *step*: control time `steps`'s action, told to the
+    /// observers, executed.
+    pub(crate) fn act(&mut self, w: &mut dyn EpisodeObserver) -> Result<(), RolloutError> {
+        let event = self.decide(w)?;
+        w.on_step(&event);
+        self.step(w)
+    }
+
+    /// The episode's record (its `cell` empty: the caller names it).
+    pub(crate) fn record(&self, w: Watchers<'_>, t_start: Instant) -> EpisodeRecord {
+        let spec = self.spec;
+        let (rec, mut times) = (w.rec, w.timer.times);
+        times.total_s = t_start.elapsed().as_secs_f64();
+        let ensembled = matches!(spec.execution, Execution::Ensemble(_));
+        EpisodeRecord {
+            cell: String::new(),
+            arm: spec.execution.to_string(),
+            seed: spec.seed,
+            success: self.success,
+            max_coverage: self.max_coverage,
+            steps: self.steps,
+            queries: rec.queries,
+            corrupted_queries: rec.corrupted_queries,
+            m_counts: rec.m_counts,
+            q_counts: rec.q_counts,
+            bracket: (!spec.corruption.is_clean() && ensembled).then_some(rec.bracket),
+            times,
+        }
     }
 
     /// Stages *ensemble* and *act*: the action of control time `steps`.
@@ -680,15 +771,15 @@ impl<'e, 'p, 's> Episode<'e, 'p, 's> {
         Ok(event)
     }
 
-    /// Stage *step*: the environment executes the action; `true` when the episode is over.
-    fn step(&mut self, w: &mut dyn EpisodeObserver) -> Result<bool, RolloutError> {
+    /// Stage *step*: the environment executes the action.
+    fn step(&mut self, w: &mut dyn EpisodeObserver) -> Result<(), RolloutError> {
         let t = Instant::now();
         let outcome = self.env.step(&self.out)?;
         w.on_stage(Stage::Step, t.elapsed().as_secs_f64());
         self.steps += 1;
         self.max_coverage = self.max_coverage.max(outcome.score);
         self.success = outcome.success;
-        Ok(outcome.success)
+        Ok(())
     }
 }
 

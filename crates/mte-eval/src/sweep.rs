@@ -37,7 +37,8 @@ use serde::{Deserialize, Serialize};
 use crate::Reporter;
 use crate::corruption::{CorruptionSpec, Fault, Schedule, SensorFault};
 use crate::label::{policy_label, slug};
-use crate::pusht::{EpisodeSpec, Execution, run_episode};
+use crate::lockstep::run_lockstep;
+use crate::pusht::{EpisodeSpec, Execution, RolloutError, run_episode};
 use crate::record::{CellSpec, ErrorRecord, Line, Manifest, RUN_FORMAT};
 use crate::store::{CellWriter, RunDir, StoreError};
 use mte_policy::{ChunkPolicy, PolicyError};
@@ -346,11 +347,36 @@ pub struct SweepSummary {
     pub failed_cells: Vec<String>,
 }
 
-/// One unit of work: a seed of a cell and the arms still to run on it.
+/// One unit of work: episodes of one cell (seed, arm) still to run, run together in
+/// lockstep ([`crate::lockstep`]) or one after the other.
 struct Task {
     cell: usize,
-    seed: u64,
-    arms: Vec<Execution>,
+    episodes: Vec<(u64, Execution)>,
+}
+
+/// How a sweep spends the machine; the records do not depend on it (only their timings).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RunOptions {
+    /// Worker threads (tasks run in parallel).
+    pub workers: usize,
+    /// Episodes of a cell run in lockstep, at most (the policy answers their queries in
+    /// one batch); 1 runs every episode alone.
+    pub batch: usize,
+}
+
+impl RunOptions {
+    /// Lockstep groups of at most this many episodes by default: large enough to amortise
+    /// the policy's per-call overhead, small enough to keep a group's memory modest (a
+    /// keypoint group's activations are a few MB; an image group under PGD a few hundred).
+    pub const DEFAULT_BATCH: usize = 64;
+
+    /// `workers` threads with the default lockstep group size.
+    pub fn new(workers: usize) -> Self {
+        RunOptions {
+            workers,
+            batch: Self::DEFAULT_BATCH,
+        }
+    }
 }
 
 /// A loaded policy, or why it could not be loaded (its cells fail, not the sweep).
@@ -376,14 +402,15 @@ impl Writers {
     }
 }
 
-/// Runs this shard of the grid into `run`, `workers` episodes at a time, skipping finished
-/// (arm, seed) pairs. Each finished episode is appended and synced at once.
+/// Runs this shard of the grid into `run` on `options.workers` threads, episodes of a cell
+/// in lockstep groups of at most `options.batch`, skipping finished (arm, seed) pairs. Each
+/// finished episode is appended and synced at once.
 pub fn run(
     spec: &SweepSpec,
     manifest: &Manifest,
     run: &RunDir,
     shard: Shard,
-    workers: usize,
+    options: RunOptions,
     policies: &dyn PolicySource,
     reporter: &dyn Reporter,
 ) -> Result<SweepSummary, SweepError> {
@@ -394,13 +421,16 @@ pub fn run(
         .filter(|(i, _)| i % shard.count == shard.index)
         .map(|(_, c)| c)
         .collect();
-    let (tasks, skipped, writers) = plan(&cells, run)?;
-    reporter.start("episodes", tasks.iter().map(|t| t.arms.len() as u64).sum());
+    let (tasks, skipped, writers) = plan(&cells, run, options)?;
+    reporter.start(
+        "episodes",
+        tasks.iter().map(|t| t.episodes.len() as u64).sum(),
+    );
     let loaded = load_policies(&cells, policies)?;
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(workers.max(1))
+        .num_threads(options.workers.max(1))
         .build()
-        .map_err(|e| field("workers", workers, format!("a thread pool ({e})")))?;
+        .map_err(|e| field("workers", options.workers, format!("a thread pool ({e})")))?;
     let ctx = TaskContext {
         spec,
         noise_seed: manifest.noise_seed,
@@ -409,8 +439,12 @@ pub fn run(
         writers: &writers,
         reporter,
     };
-    let results: Vec<Result<usize, SweepError>> =
-        pool.install(|| tasks.par_iter().map(|t| ctx.run(t)).collect());
+    let results: Vec<Result<usize, SweepError>> = pool.install(|| {
+        tasks
+            .par_iter()
+            .map(|t| ctx.run(t, options.batch))
+            .collect()
+    });
     reporter.finish();
     let mut episodes_run = 0;
     for r in results {
@@ -432,30 +466,45 @@ pub fn run(
 }
 
 /// The work list of `cells` (finished (arm, seed) pairs skipped and counted) and their
-/// open cell files.
-fn plan(cells: &[&CellSpec], run: &RunDir) -> Result<(Vec<Task>, usize, Writers), SweepError> {
-    let mut tasks = Vec::new();
+/// open cell files. A cell's remaining episodes (seed-major, the arms of a seed together)
+/// are cut into tasks of at most `options.batch`, and small enough that every worker gets
+/// one (a shard of one big cell still fills the machine).
+fn plan(
+    cells: &[&CellSpec],
+    run: &RunDir,
+    options: RunOptions,
+) -> Result<(Vec<Task>, usize, Writers), SweepError> {
+    let mut todo: Vec<Vec<(u64, Execution)>> = Vec::new();
     let mut skipped = 0;
     let mut files = Vec::new();
-    for (ci, c) in cells.iter().enumerate() {
+    for c in cells {
         let done = run.finished(&c.id)?;
         files.push(Mutex::new(run.writer(&c.id)?));
+        let mut episodes = Vec::new();
         for &seed in &c.seeds {
-            let mut arms = Vec::new();
             for a in &c.arms {
                 if done.contains(&(a.clone(), seed)) {
                     skipped += 1;
                 } else {
-                    arms.push(Execution::from_str(a).map_err(|e| field("arms", a, e.to_string()))?);
+                    let arm =
+                        Execution::from_str(a).map_err(|e| field("arms", a, e.to_string()))?;
+                    episodes.push((seed, arm));
                 }
             }
-            if !arms.is_empty() {
-                tasks.push(Task {
-                    cell: ci,
-                    seed,
-                    arms,
-                });
-            }
+        }
+        todo.push(episodes);
+    }
+    let total: usize = todo.iter().map(Vec::len).sum();
+    let size = total
+        .div_ceil(options.workers.max(1))
+        .clamp(1, options.batch.max(1));
+    let mut tasks = Vec::new();
+    for (ci, episodes) in todo.into_iter().enumerate() {
+        for group in episodes.chunks(size) {
+            tasks.push(Task {
+                cell: ci,
+                episodes: group.to_vec(),
+            });
         }
     }
     let errors = Mutex::new(vec![0; cells.len()]);
@@ -494,52 +543,86 @@ struct TaskContext<'a> {
 }
 
 impl TaskContext<'_> {
-    /// Runs the arms of one task and appends a line per arm (an episode or its error);
-    /// returns the episodes run.
-    fn run(&self, t: &Task) -> Result<usize, SweepError> {
+    /// Runs the episodes of one task and appends a line per episode (its record or its
+    /// error) as each finishes; returns the episodes run.
+    fn run(&self, t: &Task, batch: usize) -> Result<usize, SweepError> {
         let c = self.cells[t.cell];
-        let error = |arm: Execution, error: String| {
-            Line::Error(ErrorRecord {
-                cell: c.id.clone(),
-                arm: Some(arm.to_string()),
-                seed: Some(t.seed),
-                error,
-            })
-        };
         // Every policy of the shard was loaded (or failed to) before the tasks ran.
         let Some(loaded) = self.loaded.get(c.policy.as_str()) else {
             return Ok(0);
         };
-        let mut ran = 0;
-        for &execution in &t.arms {
-            let line = match loaded {
-                Ok(policy) => {
-                    let ep = EpisodeSpec {
-                        needs: policy.needs(),
-                        seed: t.seed,
-                        stream: self.spec.stream,
-                        h: c.h,
-                        max_steps: c.max_steps,
-                        execution,
-                        corruption: &c.corruption,
-                        noise_seed: self.noise_seed,
-                        sampling: Default::default(),
-                    };
-                    match run_episode(policy.as_ref(), &ep) {
-                        Ok(mut r) => {
-                            r.cell = c.id.clone();
-                            ran += 1;
-                            Line::Episode(r)
-                        }
-                        Err(e) => error(execution, e.to_string()),
-                    }
+        let policy = match loaded {
+            Ok(p) => p,
+            Err(e) => {
+                for &(seed, arm) in &t.episodes {
+                    self.append(t.cell, seed, arm, Err(e.clone()))?;
                 }
-                Err(e) => error(execution, e.clone()),
-            };
-            self.writers.append(t.cell, &line)?;
-            self.reporter.advance(1);
+                return Ok(0);
+            }
+        };
+        let specs: Vec<EpisodeSpec<'_>> = t
+            .episodes
+            .iter()
+            .map(|&(seed, execution)| EpisodeSpec {
+                needs: policy.needs(),
+                seed,
+                stream: self.spec.stream,
+                h: c.h,
+                max_steps: c.max_steps,
+                execution,
+                corruption: &c.corruption,
+                noise_seed: self.noise_seed,
+                sampling: Default::default(),
+            })
+            .collect();
+        let mut ran = 0;
+        let mut failure = None;
+        let mut done = |i: usize, r: Result<crate::record::EpisodeRecord, RolloutError>| {
+            let (seed, arm) = t.episodes[i];
+            let r = r.map(|mut rec| {
+                rec.cell = c.id.clone();
+                rec
+            });
+            ran += usize::from(r.is_ok());
+            if let Err(e) = self.append(t.cell, seed, arm, r.map_err(|e| e.to_string()))
+                && failure.is_none()
+            {
+                failure = Some(e);
+            }
+        };
+        if batch > 1 {
+            run_lockstep(policy.as_ref(), &specs, &mut done);
+        } else {
+            for (i, spec) in specs.iter().enumerate() {
+                done(i, run_episode(policy.as_ref(), spec));
+            }
         }
-        Ok(ran)
+        match failure {
+            Some(e) => Err(e),
+            None => Ok(ran),
+        }
+    }
+
+    /// Appends one episode's line (its record, or its error) and advances the progress.
+    fn append(
+        &self,
+        cell: usize,
+        seed: u64,
+        arm: Execution,
+        r: Result<crate::record::EpisodeRecord, String>,
+    ) -> Result<(), SweepError> {
+        let line = match r {
+            Ok(rec) => Line::Episode(rec),
+            Err(error) => Line::Error(ErrorRecord {
+                cell: self.cells[cell].id.clone(),
+                arm: Some(arm.to_string()),
+                seed: Some(seed),
+                error,
+            }),
+        };
+        self.writers.append(cell, &line)?;
+        self.reporter.advance(1);
+        Ok(())
     }
 }
 

@@ -12,7 +12,7 @@ use mte_eval::corruption::{
 use mte_eval::pusht::{EpisodeSpec, Execution, ObsNeeds, run_episode};
 use mte_eval::record::{EpisodeRecord, Line};
 use mte_eval::store::{RunDir, read_lines};
-use mte_eval::sweep::{PolicySource, Shard, SweepSpec, run};
+use mte_eval::sweep::{PolicySource, RunOptions, Shard, SweepSpec, run};
 use mte_policy::{ChunkPolicy, Observation, PolicyError};
 use mte_sim::ResetStream;
 use rand::{Rng, RngCore};
@@ -286,8 +286,24 @@ fn sweeps_record_every_episode_resume_and_shard() -> TestResult {
     let dir = tempfile::tempdir()?;
     let root = dir.path().join("run");
     let rd = RunDir::create(&root, &spec.to_toml()?, &manifest, false)?;
-    let s0 = run(&spec, &manifest, &rd, "0/2".parse()?, 2, &Source, &Silent)?;
-    let s1 = run(&spec, &manifest, &rd, "1/2".parse()?, 1, &Source, &Silent)?;
+    let s0 = run(
+        &spec,
+        &manifest,
+        &rd,
+        "0/2".parse()?,
+        RunOptions::new(2),
+        &Source,
+        &Silent,
+    )?;
+    let s1 = run(
+        &spec,
+        &manifest,
+        &rd,
+        "1/2".parse()?,
+        RunOptions::new(1),
+        &Source,
+        &Silent,
+    )?;
     assert_eq!(s0.cells + s1.cells, 4);
     assert_eq!(
         s0.episodes_run + s1.episodes_run,
@@ -307,7 +323,15 @@ fn sweeps_record_every_episode_resume_and_shard() -> TestResult {
     assert_eq!(keys.len(), 4);
     // Resume: nothing new to run in the good cells.
     let rd = RunDir::create(&root, "", &manifest, true)?;
-    let again = run(&spec, &manifest, &rd, Shard::default(), 2, &Source, &Silent)?;
+    let again = run(
+        &spec,
+        &manifest,
+        &rd,
+        Shard::default(),
+        RunOptions::new(2),
+        &Source,
+        &Silent,
+    )?;
     assert_eq!(again.episodes_run, 0);
     assert_eq!(again.episodes_skipped, 8);
     // Drop the last finished episode: resume runs exactly that one.
@@ -315,7 +339,15 @@ fn sweeps_record_every_episode_resume_and_shard() -> TestResult {
     let text = std::fs::read_to_string(&path)?;
     let kept: Vec<&str> = text.lines().collect();
     std::fs::write(&path, format!("{}\n", kept[..kept.len() - 1].join("\n")))?;
-    let again = run(&spec, &manifest, &rd, Shard::default(), 2, &Source, &Silent)?;
+    let again = run(
+        &spec,
+        &manifest,
+        &rd,
+        Shard::default(),
+        RunOptions::new(2),
+        &Source,
+        &Silent,
+    )?;
     assert_eq!(again.episodes_run, 1);
     assert!("2/2".parse::<Shard>().is_err());
     assert!(SweepSpec::from_toml(&SPEC.replace("median", "medain")).is_err());

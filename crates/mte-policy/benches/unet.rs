@@ -64,6 +64,44 @@ fn chunk(bencher: divan::Bencher, preset: &str) {
     bencher.bench_local(|| p.predict(&hist, &mut rng).expect("chunk"));
 }
 
+/// 32 chunks at once (`ChunkPolicy::predict_chunks`, as the lockstep runner asks): divide by
+/// 32 for the time per chunk, against `chunk` at batch 1.
+#[divan::bench(args = ["cpu-image", "cpu-keypoints"], sample_count = 3)]
+fn chunks_batch_32(bencher: divan::Bencher, preset: &str) {
+    use mte_policy::{ChunkPolicy, Query};
+    let (p, _vm) = policy(preset);
+    let hist = history(preset);
+    let mut rngs: Vec<rand_chacha::ChaCha8Rng> = (0..32)
+        .map(rand_chacha::ChaCha8Rng::seed_from_u64)
+        .collect();
+    bencher.bench_local(|| {
+        let mut qs: Vec<Query<'_>> = rngs
+            .iter_mut()
+            .map(|rng| Query {
+                history: &hist,
+                rng,
+            })
+            .collect();
+        p.predict_chunks(&mut qs).expect("chunks")
+    });
+}
+
+/// The U-Net's share of one training step at batch 64: the loss's forward and backward with
+/// respect to every weight (the `cpu` keypoint preset).
+#[divan::bench(sample_count = 5)]
+fn unet_train_step(bencher: divan::Bencher) {
+    let (p, vm) = policy("cpu-keypoints");
+    let cond = Tensor::randn(0f32, 1.0, (64, 2 * (2 + 16)), &Device::Cpu).expect("cond");
+    let x0 = Tensor::randn(0f32, 0.5, (64, 16, 2), &Device::Cpu).expect("x0");
+    let eps = Tensor::randn(0f32, 1.0, (64, 16, 2), &Device::Cpu).expect("eps");
+    let ts: Vec<usize> = (0..64).map(|i| i * 3).collect();
+    bencher.bench_local(|| {
+        let loss = p.loss(&cond, &x0, &eps, &ts, None).expect("loss");
+        let grads = loss.backward().expect("backward");
+        assert!(grads.get(&vm.all_vars()[0]).is_some());
+    });
+}
+
 /// One PGD iteration (forward + backward of the loss with respect to the observation, 4
 /// diffusion timesteps per iteration, the attack's default) for the `cpu` presets: the
 /// attack's cost is this times its budget, per attacked query.

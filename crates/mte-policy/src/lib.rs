@@ -32,5 +32,6 @@ pub use error::PolicyError;
 pub use model::{DiffusionPolicy, ObsBatch, ObsGradient, StatsMap};
 pub use normalize::{NormMode, Normalizer, Stats};
 pub use policy::{
-    AttackablePolicy, ChunkPolicy, ObsNeeds, Observation, POLICY_TYPES, attackable, load_policy,
+    AttackablePolicy, AttackedQuery, ChunkPolicy, ObsNeeds, Observation, POLICY_TYPES, Query,
+    attackable, load_policy,
 };

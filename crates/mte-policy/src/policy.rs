@@ -5,7 +5,8 @@
 //! - [`Observation`]: one observation step as the environment reports it.
 //! - [`ObsNeeds`]: which observations the policy reads, so an environment renders only those.
 //! - [`ChunkPolicy`]: a history of `T_o` observations in, one `T_p x d` chunk out, randomness
-//!   injected.
+//!   injected; [`ChunkPolicy::predict_chunks`] answers a batch of such queries at once, each
+//!   exactly as it would be answered alone (batch invariance).
 //! - [`AttackablePolicy`]: the gradient access that PGD needs, offered separately
 //!   ([`ChunkPolicy::attackable`]); policies without an observation gradient refuse attacks
 //!   with a typed error instead of implementing a stub.
@@ -64,6 +65,39 @@ pub trait ChunkPolicy {
     fn attackable(&self) -> Option<&dyn AttackablePolicy> {
         None
     }
+    /// Answer several queries at once (one network evaluation per denoising step for all of
+    /// them, where the policy can batch). Contract: chunk `i` is bit for bit what
+    /// [`ChunkPolicy::predict_chunk`] returns for query `i` alone, and each query's stream
+    /// advances exactly as it would alone, so a result never depends on which other queries
+    /// shared its batch. The default answers them one by one.
+    ///
+    /// # Errors
+    /// As [`ChunkPolicy::predict_chunk`]; a batch fails as a whole (a caller that needs to
+    /// know which query failed asks them one by one with fresh streams).
+    fn predict_chunks(&self, queries: &mut [Query<'_>]) -> Result<Vec<Vec<f32>>, PolicyError> {
+        queries
+            .iter_mut()
+            .map(|q| self.predict_chunk(q.history, &mut *q.rng))
+            .collect()
+    }
+}
+
+/// One query of a batch: the history it sees and its own sampling stream.
+pub struct Query<'a> {
+    /// `n_obs_steps` observations, oldest first.
+    pub history: &'a [Observation],
+    /// The query's sampling stream (the same one a single query would get).
+    pub rng: &'a mut dyn RngCore,
+}
+
+/// One attacked query of a batch: its history and its two streams.
+pub struct AttackedQuery<'a> {
+    /// `n_obs_steps` clean observations, oldest first.
+    pub history: &'a [Observation],
+    /// Drives the attack (random start, timesteps, noise).
+    pub attack_rng: &'a mut dyn RngCore,
+    /// Drives the sampling of the clean and the executed chunk.
+    pub sample_rng: &'a mut dyn RngCore,
 }
 
 /// A policy whose observation can be attacked through its own loss's gradient.
@@ -77,6 +111,23 @@ pub trait AttackablePolicy {
         attack_rng: &mut dyn RngCore,
         sample_rng: &mut dyn RngCore,
     ) -> Result<Vec<f32>, PolicyError>;
+
+    /// Attack several queries at once, under the batch-invariance contract of
+    /// [`ChunkPolicy::predict_chunks`]: chunk `i` is what
+    /// [`AttackablePolicy::predict_chunk_attacked`] returns for query `i` alone. The default
+    /// attacks them one by one.
+    fn predict_chunks_attacked(
+        &self,
+        queries: &mut [AttackedQuery<'_>],
+        pgd: &PgdConfig,
+    ) -> Result<Vec<Vec<f32>>, PolicyError> {
+        queries
+            .iter_mut()
+            .map(|q| {
+                self.predict_chunk_attacked(q.history, pgd, &mut *q.attack_rng, &mut *q.sample_rng)
+            })
+            .collect()
+    }
 }
 
 /// `policy`'s attack access, or the typed refusal for a policy without a gradient.

@@ -12,7 +12,9 @@
 
 use crate::kernels::{Conv2d, GroupNorm, max_pool_3x3_s2};
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use candle_nn::VarBuilder;
+
+use crate::kernels::Linear;
 
 const GN_EPS: f64 = 1e-5;
 
@@ -116,7 +118,7 @@ impl RgbEncoder {
             bn1: gn(w0, b.pp("1"))?,
             layers,
             keypoints,
-            out: candle_nn::linear(2 * num_kp, 2 * num_kp, vb.pp("out"))?,
+            out: crate::kernels::linear(2 * num_kp, 2 * num_kp, vb.pp("out"))?,
             crop,
             num_kp,
         })
@@ -186,9 +188,9 @@ impl RgbEncoder {
         let (b, k, fh, fw) = f.dims4()?;
         // The composed softmax, not candle's fused `softmax_last_dim`: the fused kernel has
         // no backward pass, which would cut the observation gradient (PGD) at this point.
-        let att = candle_nn::ops::softmax(&f.reshape((b * k, fh * fw))?, candle_core::D::Minus1)?;
+        let att = candle_nn::ops::softmax(&f.reshape((b, k, fh * fw))?, candle_core::D::Minus1)?;
         let grid = pos_grid(fh, fw, x.device())?.to_dtype(f.dtype())?;
-        let keypoints = att.matmul(&grid)?.reshape((b, k, 2))?;
+        let keypoints = crate::kernels::right_shared(&att, &grid)?;
         let feature = self.out.forward(&keypoints.reshape((b, k * 2))?)?.relu()?;
         Ok(EncoderParts {
             feature_map: h,

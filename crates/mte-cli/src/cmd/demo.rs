@@ -62,7 +62,7 @@ pub fn run(cli: &Cli, a: &DemoArgs) -> Result<()> {
         &a.out,
         resume,
         Shard::default(),
-        super::sweep::workers(a.workers)?,
+        super::sweep::options(a.workers, a.batch)?,
     )
     .map_err(|e| {
         let other_grid = e

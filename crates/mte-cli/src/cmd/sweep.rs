@@ -5,7 +5,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use mte_eval::store::RunDir;
-use mte_eval::sweep::{self, CheckpointSource, Shard, SweepSpec, SweepSummary};
+use mte_eval::sweep::{self, CheckpointSource, RunOptions, Shard, SweepSpec, SweepSummary};
 
 use crate::args::{Cli, Format, SweepArgs};
 use crate::progress::Bar;
@@ -29,13 +29,14 @@ pub fn now_unix() -> u64 {
         .map_or(0, |d| d.as_secs())
 }
 
-/// Worker count: the flag, else every core.
-pub fn workers(flag: Option<usize>) -> Result<usize> {
-    match flag {
+/// Worker count (the flag, else every core) and lockstep group size.
+pub fn options(workers: Option<usize>, batch: usize) -> Result<RunOptions> {
+    let workers = match workers {
         Some(0) => anyhow::bail!("--workers must be at least 1"),
-        Some(n) => Ok(n),
-        None => Ok(std::thread::available_parallelism().map_or(1, |n| n.get())),
-    }
+        Some(n) => n,
+        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
+    };
+    Ok(RunOptions { workers, batch })
 }
 
 /// Creates or resumes `out` and runs `shard` of `spec` in it.
@@ -45,14 +46,14 @@ pub fn execute(
     out: &Path,
     resume: bool,
     shard: Shard,
-    workers: usize,
+    options: RunOptions,
 ) -> Result<SweepSummary> {
     let manifest = spec.manifest(git_commit(), now_unix());
     let run = RunDir::create(out, &spec.to_toml()?, &manifest, resume)?;
     let bar = Bar::new(!cli.no_progress && !cli.quiet);
     // Cells and commit come from the stored manifest when resuming (same grid, checked).
     let stored = mte_eval::store::read_manifest(run.root())?;
-    let summary = sweep::run(spec, &stored, &run, shard, workers, &CheckpointSource, &bar)?;
+    let summary = sweep::run(spec, &stored, &run, shard, options, &CheckpointSource, &bar)?;
     Ok(summary)
 }
 
@@ -67,7 +68,14 @@ pub fn run(cli: &Cli, a: &SweepArgs) -> Result<()> {
     }
     let shard: Shard = a.shard;
     let t0 = std::time::Instant::now();
-    let s = execute(cli, &spec, &a.out, a.resume, shard, workers(a.workers)?)?;
+    let s = execute(
+        cli,
+        &spec,
+        &a.out,
+        a.resume,
+        shard,
+        options(a.workers, a.batch)?,
+    )?;
     print_summary(cli, &s, &a.out, t0.elapsed().as_secs_f64())?;
     fail_on_errors(&s, &a.out)
 }

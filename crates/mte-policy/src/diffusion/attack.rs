@@ -13,12 +13,13 @@
 //! the *normalised* environment state (the block keypoints), in normalised units. The
 //! agent's own position is proprioception and is left alone, as for the sensor faults.
 
-use candle_core::{D, DType, Tensor};
+use candle_core::{DType, Tensor};
 use rand::{Rng, RngCore};
 use rand_distr::{Distribution, StandardNormal};
 
 use crate::error::PolicyError;
 use crate::model::{DiffusionPolicy, ObsBatch, Observation};
+use crate::policy::AttackedQuery;
 
 /// PGD settings. Defaults: the paper's (eps 0.03, step 0.001875, 200 iterations).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -83,8 +84,9 @@ pub struct PgdOutcome {
 }
 
 impl DiffusionPolicy {
-    /// The perturbed observation batch of [`DiffusionPolicy::pgd_attack`], before sampling.
-    /// `attack_rng` draws the random start, timesteps and noise.
+    /// The perturbed observation batch of [`DiffusionPolicy::pgd_attack`], before sampling,
+    /// with the losses at the first and the last iteration. `attack_rng` draws the random
+    /// start, timesteps and noise.
     pub fn pgd_perturb(
         &self,
         history: &[Observation],
@@ -92,17 +94,24 @@ impl DiffusionPolicy {
         cfg: &PgdConfig,
         attack_rng: &mut dyn RngCore,
     ) -> Result<(ObsBatch, f32, f32), PolicyError> {
-        self.pgd_perturb_batch(&self.obs_batch(&[history])?, x0, cfg, attack_rng)
+        let (adv, losses) =
+            self.pgd_perturb_batch(&self.obs_batch(&[history])?, x0, cfg, &mut [attack_rng])?;
+        Ok((adv, losses[0].0, losses[0].1))
     }
 
-    /// [`DiffusionPolicy::pgd_perturb`] from the clean observation batch.
+    /// [`DiffusionPolicy::pgd_perturb`] for `B` queries at once from their clean batch and
+    /// clean chunks `x0 (B, horizon, d)`, query `i` driven by `attack_rngs[i]` exactly as a
+    /// batch of one is (its random start, then per iteration its timesteps and noise), its
+    /// gradient its own ([`DiffusionPolicy::observation_gradient_per_query`]): each query is
+    /// perturbed as it would be alone. Returns the perturbed batch and each query's first
+    /// and last loss.
     fn pgd_perturb_batch(
         &self,
         clean: &ObsBatch,
         x0: &Tensor,
         cfg: &PgdConfig,
-        attack_rng: &mut dyn RngCore,
-    ) -> Result<(ObsBatch, f32, f32), PolicyError> {
+        attack_rngs: &mut [&mut (dyn RngCore + '_)],
+    ) -> Result<(ObsBatch, Vec<(f32, f32)>), PolicyError> {
         cfg.validate()?;
         let (target, is_image) = match (&clean.image, &clean.env) {
             (Some(img), _) => (img.clone(), true),
@@ -114,13 +123,24 @@ impl DiffusionPolicy {
                 });
             }
         };
+        let b = attack_rngs.len();
         let eps = cfg.eps as f32;
         let dtype = target.dtype();
         let mut x: Vec<f32> = target.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+        if b == 0 || !x.len().is_multiple_of(b) {
+            return Err(PolicyError::Input {
+                name: "attack_rngs",
+                reason: format!("{b} streams for a batch of {} values", x.len()),
+            });
+        }
+        // Each query's values are one contiguous run (images: its T_o frames).
+        let per = x.len() / b;
         let base = x.clone();
         if cfg.random_start {
-            for v in &mut x {
-                *v += attack_rng.random_range(-eps..=eps);
+            for (part, rng) in x.chunks_mut(per).zip(attack_rngs.iter_mut()) {
+                for v in part {
+                    *v += rng.random_range(-eps..=eps);
+                }
             }
         }
         let project = |x: &mut [f32]| {
@@ -150,21 +170,23 @@ impl DiffusionPolicy {
                 image,
             })
         };
-        let (mut first, mut last) = (f32::NAN, f32::NAN);
+        let mut losses = vec![(f32::NAN, f32::NAN); b];
         for it in 0..cfg.iterations {
             let batch = with_perturbed(x.clone())?;
-            let timesteps: Vec<usize> = (0..n)
-                .map(|_| attack_rng.random_range(0..n_train))
-                .collect();
-            let noise: Vec<f32> = (0..n * tp * d)
-                .map(|_| StandardNormal.sample(attack_rng))
-                .collect();
-            let noise = Tensor::from_vec(noise, (n, tp, d), self.device())?.to_dtype(dtype)?;
-            let (loss, g) = self.observation_gradient(&batch, x0, &noise, &timesteps)?;
-            if it == 0 {
-                first = loss;
+            let mut timesteps = Vec::with_capacity(b * n);
+            let mut noise = Vec::with_capacity(b * n * tp * d);
+            for rng in attack_rngs.iter_mut() {
+                timesteps.extend((0..n).map(|_| rng.random_range(0..n_train)));
+                noise.extend((0..n * tp * d).map(|_| -> f32 { StandardNormal.sample(&mut **rng) }));
             }
-            last = loss;
+            let noise = Tensor::from_vec(noise, (b * n, tp, d), self.device())?.to_dtype(dtype)?;
+            let (loss, g) = self.observation_gradient_per_query(&batch, x0, &noise, &timesteps)?;
+            for (l, &v) in losses.iter_mut().zip(&loss) {
+                if it == 0 {
+                    l.0 = v;
+                }
+                l.1 = v;
+            }
             let grad = if is_image { g.image } else { g.env };
             let grad: Vec<f32> = match grad {
                 Some(t) => t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?,
@@ -181,7 +203,7 @@ impl DiffusionPolicy {
             }
             project(&mut x);
         }
-        Ok((with_perturbed(x)?, first, last))
+        Ok((with_perturbed(x)?, losses))
     }
 
     /// Attack one query: sample the clean chunk as `x_0` (with `sample_rng`), run PGD
@@ -194,24 +216,67 @@ impl DiffusionPolicy {
         attack_rng: &mut dyn RngCore,
         sample_rng: &mut dyn RngCore,
     ) -> Result<PgdOutcome, PolicyError> {
-        let clean = self.obs_batch(&[history])?;
-        let x0 = self.sample_chunk_normalized(&clean, sample_rng)?;
-        let (adv, loss_first, loss_last) = self.pgd_perturb_batch(&clean, &x0, cfg, attack_rng)?;
-        let max_perturbation = match (&adv.image, &clean.image, &adv.env, &clean.env) {
-            (Some(a), Some(c), _, _) | (None, None, Some(a), Some(c)) => (a - c)?
-                .abs()?
-                .flatten_all()?
-                .max(D::Minus1)?
-                .to_dtype(DType::F32)?
-                .to_scalar::<f32>()?,
-            _ => 0.0,
-        };
-        let chunk = self.unnormalized_chunk(&self.sample_chunk_normalized(&adv, sample_rng)?)?;
-        Ok(PgdOutcome {
-            chunk,
-            loss_first,
-            loss_last,
-            max_perturbation,
-        })
+        let mut q = [AttackedQuery {
+            history,
+            attack_rng,
+            sample_rng,
+        }];
+        let mut out = self.pgd_attack_batch(&mut q, cfg)?;
+        Ok(out.remove(0))
     }
+
+    /// [`DiffusionPolicy::pgd_attack`] for several queries at once, each exactly as it would
+    /// be attacked alone (batch-invariant network, per-query streams and gradients).
+    pub fn pgd_attack_batch<'a>(
+        &self,
+        queries: &mut [AttackedQuery<'a>],
+        cfg: &PgdConfig,
+    ) -> Result<Vec<PgdOutcome>, PolicyError> {
+        let histories: Vec<&[Observation]> = queries.iter().map(|q| q.history).collect();
+        let clean = self.obs_batch(&histories)?;
+        let mut sample: Vec<&mut (dyn RngCore + 'a)> =
+            queries.iter_mut().map(|q| &mut *q.sample_rng).collect();
+        let x0 = self.sample_chunks_normalized(&clean, &mut sample)?;
+        drop(sample);
+        let mut attack: Vec<&mut (dyn RngCore + 'a)> =
+            queries.iter_mut().map(|q| &mut *q.attack_rng).collect();
+        let (adv, losses) = self.pgd_perturb_batch(&clean, &x0, cfg, &mut attack)?;
+        drop(attack);
+        let perturbation = max_perturbation(&adv, &clean, queries.len())?;
+        let mut sample: Vec<&mut (dyn RngCore + 'a)> =
+            queries.iter_mut().map(|q| &mut *q.sample_rng).collect();
+        let chunks =
+            self.unnormalized_chunks(&self.sample_chunks_normalized(&adv, &mut sample)?)?;
+        Ok(chunks
+            .into_iter()
+            .zip(losses)
+            .zip(perturbation)
+            .map(
+                |((chunk, (loss_first, loss_last)), max_perturbation)| PgdOutcome {
+                    chunk,
+                    loss_first,
+                    loss_last,
+                    max_perturbation,
+                },
+            )
+            .collect())
+    }
+}
+
+/// Each query's largest absolute change of the attacked channel (images, else the
+/// environment state).
+fn max_perturbation(adv: &ObsBatch, clean: &ObsBatch, b: usize) -> Result<Vec<f32>, PolicyError> {
+    let (a, c) = match (&adv.image, &clean.image, &adv.env, &clean.env) {
+        (Some(a), Some(c), _, _) | (None, None, Some(a), Some(c)) => (a, c),
+        _ => return Ok(vec![0.0; b]),
+    };
+    let diff: Vec<f32> = (a - c)?
+        .abs()?
+        .to_dtype(DType::F32)?
+        .flatten_all()?
+        .to_vec1()?;
+    Ok(diff
+        .chunks(diff.len() / b.max(1))
+        .map(|part| part.iter().copied().fold(0f32, f32::max))
+        .collect())
 }

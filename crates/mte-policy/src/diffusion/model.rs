@@ -13,7 +13,7 @@ use crate::config::{DiffusionConfig, FeatureType};
 use crate::error::{PolicyError, config_err};
 use crate::normalize::{NormMode, Normalizer, Stats};
 pub use crate::policy::Observation;
-use crate::policy::{AttackablePolicy, ChunkPolicy, ObsNeeds};
+use crate::policy::{AttackablePolicy, AttackedQuery, ChunkPolicy, ObsNeeds, Query};
 use crate::scheduler::Scheduler;
 use crate::unet::ConditionalUnet1d;
 use crate::vision::RgbEncoder;
@@ -412,11 +412,60 @@ impl DiffusionPolicy {
         obs: &ObsBatch,
         rng: &mut dyn RngCore,
     ) -> Result<Tensor, PolicyError> {
+        self.sample_chunks_normalized(obs, &mut [rng])
+    }
+
+    /// Normalised chunks `(B, horizon, d)` for an observation batch of `B` histories, chunk
+    /// `i` drawn from `rngs[i]` exactly as [`DiffusionPolicy::sample_chunk_normalized`]
+    /// draws a batch of one (initial noise, then each noisy step's variance noise), and the
+    /// network batch-invariant (`kernels::batch`): chunk `i` does not depend on the others.
+    pub fn sample_chunks_normalized(
+        &self,
+        obs: &ObsBatch,
+        rngs: &mut [&mut (dyn RngCore + '_)],
+    ) -> Result<Tensor, PolicyError> {
         let cond = self.global_cond(obs)?;
+        let b = cond.dim(0)?;
+        if rngs.len() != b {
+            return Err(config_err(
+                "rngs",
+                rngs.len(),
+                format!("one per history ({b})"),
+            ));
+        }
         let (tp, d) = (self.config.horizon, self.config.action_dim()?);
-        let init: Vec<f32> = (0..tp * d).map(|_| StandardNormal.sample(rng)).collect();
-        let noise = Tensor::from_vec(init, (1, tp, d), &self.device)?.to_dtype(cond.dtype())?;
-        self.sample_normalized(&cond, noise, rng)
+        let mut init = Vec::with_capacity(b * tp * d);
+        for rng in rngs.iter_mut() {
+            init.extend((0..tp * d).map(|_| -> f32 { StandardNormal.sample(&mut **rng) }));
+        }
+        let noise = Tensor::from_vec(init, (b, tp, d), &self.device)?.to_dtype(cond.dtype())?;
+        self.sample_normalized_with(&cond, noise, &mut |_, buf: &mut [f32]| {
+            for (rng, part) in rngs.iter_mut().zip(buf.chunks_mut(tp * d)) {
+                for v in part.iter_mut() {
+                    *v = StandardNormal.sample(&mut **rng);
+                }
+            }
+        })
+    }
+
+    /// Chunks for a batch of queries ([`ChunkPolicy::predict_chunks`]'s contract).
+    pub fn predict_batch<'a>(
+        &self,
+        queries: &mut [Query<'a>],
+    ) -> Result<Vec<Vec<f32>>, PolicyError> {
+        let histories: Vec<&[Observation]> = queries.iter().map(|q| q.history).collect();
+        let obs = self.obs_batch(&histories)?;
+        let mut rngs: Vec<&mut (dyn RngCore + 'a)> =
+            queries.iter_mut().map(|q| &mut *q.rng).collect();
+        let x = self.sample_chunks_normalized(&obs, &mut rngs)?;
+        self.unnormalized_chunks(&x)
+    }
+
+    /// [`DiffusionPolicy::unnormalized_chunk`] of each chunk of `x (B, horizon, d)`.
+    pub fn unnormalized_chunks(&self, x: &Tensor) -> Result<Vec<Vec<f32>>, PolicyError> {
+        (0..x.dim(0)?)
+            .map(|i| self.unnormalized_chunk(&x.narrow(0, i, 1)?))
+            .collect()
     }
 
     /// A sampled normalised chunk as unnormalised actions, row-major; a non-finite action is
@@ -444,6 +493,26 @@ impl DiffusionPolicy {
         timesteps: &[usize],
         pad: Option<&Tensor>,
     ) -> Result<Tensor, PolicyError> {
+        let se = self.squared_error(cond, x0, eps, timesteps)?;
+        let loss = match (self.config.do_mask_loss_for_padding, pad) {
+            (true, Some(p)) => {
+                // p: (B, horizon) with 1 where padded.
+                let keep = (1.0 - p.to_dtype(x0.dtype())?)?.unsqueeze(D::Minus1)?;
+                se.broadcast_mul(&keep)?.mean_all()?
+            }
+            _ => se.mean_all()?,
+        };
+        Ok(loss)
+    }
+
+    /// The per-element squared error of the noise (or sample) prediction, `(B, horizon, d)`.
+    fn squared_error(
+        &self,
+        cond: &Tensor,
+        x0: &Tensor,
+        eps: &Tensor,
+        timesteps: &[usize],
+    ) -> Result<Tensor, PolicyError> {
         let abar = self.scheduler.alphas_cumprod();
         let b = timesteps.len();
         let mut sa = Vec::with_capacity(b);
@@ -463,16 +532,7 @@ impl DiffusionPolicy {
             "sample" => x0.clone(),
             _ => eps.clone(),
         };
-        let se = (pred - target)?.sqr()?;
-        let loss = match (self.config.do_mask_loss_for_padding, pad) {
-            (true, Some(p)) => {
-                // p: (B, horizon) with 1 where padded.
-                let keep = (1.0 - p.to_dtype(x0.dtype())?)?.unsqueeze(D::Minus1)?;
-                se.broadcast_mul(&keep)?.mean_all()?
-            }
-            _ => se.mean_all()?,
-        };
-        Ok(loss)
+        Ok((pred - target)?.sqr()?)
     }
 
     /// The policy's own training loss and its gradient with respect to the observation:
@@ -486,20 +546,7 @@ impl DiffusionPolicy {
         eps: &Tensor,
         timesteps: &[usize],
     ) -> Result<(f32, ObsGradient), PolicyError> {
-        let state = Var::from_tensor(&obs.state)?;
-        let env = match &obs.env {
-            Some(e) => Some(Var::from_tensor(e)?),
-            None => None,
-        };
-        let image = match &obs.image {
-            Some(i) => Some(Var::from_tensor(i)?),
-            None => None,
-        };
-        let batch = ObsBatch {
-            state: state.as_tensor().clone(),
-            env: env.as_ref().map(|v| v.as_tensor().clone()),
-            image: image.as_ref().map(|v| v.as_tensor().clone()),
-        };
+        let (vars, batch) = ObsVars::new(obs)?;
         let cond = self.global_cond(&batch)?;
         let n = timesteps.len();
         let cond = if cond.dim(0)? == 1 && n > 1 {
@@ -514,20 +561,95 @@ impl DiffusionPolicy {
         };
         let loss = self.loss(&cond, &x0, eps, timesteps, None)?;
         let grads = loss.backward()?;
+        Ok((
+            loss.to_dtype(DType::F32)?.to_scalar::<f32>()?,
+            vars.gradient(&grads)?,
+        ))
+    }
+
+    /// [`DiffusionPolicy::observation_gradient`] for a batch of `B` independent queries:
+    /// `obs` and `x0 (B, horizon, d)` hold one query each, `eps` and `timesteps` `n` samples
+    /// per query, query-major (`B n` rows). Query `i`'s loss is the mean over its own samples,
+    /// and the gradient is that of the sum of the queries' losses, so each query's gradient
+    /// is exactly its own (a batch of one is [`DiffusionPolicy::observation_gradient`]'s
+    /// repeated-conditioning case, operation for operation). Returns each query's loss.
+    pub fn observation_gradient_per_query(
+        &self,
+        obs: &ObsBatch,
+        x0: &Tensor,
+        eps: &Tensor,
+        timesteps: &[usize],
+    ) -> Result<(Vec<f32>, ObsGradient), PolicyError> {
+        let (vars, batch) = ObsVars::new(obs)?;
+        let cond = self.global_cond(&batch)?;
+        let b = cond.dim(0)?;
+        if b == 0 || !timesteps.len().is_multiple_of(b) || x0.dim(0)? != b {
+            return Err(config_err(
+                "timesteps",
+                timesteps.len(),
+                format!("the same number of samples for each of the {b} queries"),
+            ));
+        }
+        let n = timesteps.len() / b;
+        // Each query's row repeated n times, query-major.
+        let per_query = |t: &Tensor| -> Result<Tensor, PolicyError> {
+            let mut reps = vec![1; t.rank() + 1];
+            reps[1] = n;
+            let mut dims = t.dims().to_vec();
+            dims[0] = b * n;
+            Ok(t.unsqueeze(1)?.repeat(reps)?.reshape(dims)?)
+        };
+        let (cond, x0) = (per_query(&cond)?, per_query(x0)?);
+        let se = self.squared_error(&cond, &x0, eps, timesteps)?;
+        let losses = se.reshape((b, ()))?.mean(1)?;
+        let grads = losses.sum_all()?.backward()?;
+        Ok((
+            losses.to_dtype(DType::F32)?.to_vec1::<f32>()?,
+            vars.gradient(&grads)?,
+        ))
+    }
+}
+
+/// The observation tensors of a batch as variables, for their gradients.
+struct ObsVars {
+    state: Var,
+    env: Option<Var>,
+    image: Option<Var>,
+}
+
+impl ObsVars {
+    /// The variables, and the batch that reads them.
+    fn new(obs: &ObsBatch) -> Result<(Self, ObsBatch), PolicyError> {
+        let var = |t: &Option<Tensor>| t.as_ref().map(Var::from_tensor).transpose();
+        let vars = ObsVars {
+            state: Var::from_tensor(&obs.state)?,
+            env: var(&obs.env)?,
+            image: var(&obs.image)?,
+        };
+        let batch = ObsBatch {
+            state: vars.state.as_tensor().clone(),
+            env: vars.env.as_ref().map(|v| v.as_tensor().clone()),
+            image: vars.image.as_ref().map(|v| v.as_tensor().clone()),
+        };
+        Ok((vars, batch))
+    }
+
+    /// Each variable's gradient (zeros where the loss does not depend on it).
+    fn gradient(
+        &self,
+        grads: &candle_core::backprop::GradStore,
+    ) -> Result<ObsGradient, PolicyError> {
         let get = |v: &Var| -> Result<Tensor, PolicyError> {
             Ok(match grads.get(v.as_tensor()) {
                 Some(g) => g.clone(),
                 None => v.as_tensor().zeros_like()?,
             })
         };
-        Ok((
-            loss.to_dtype(DType::F32)?.to_scalar::<f32>()?,
-            ObsGradient {
-                state: get(&state)?,
-                env: env.as_ref().map(get).transpose()?,
-                image: image.as_ref().map(get).transpose()?,
-            },
-        ))
+        Ok(ObsGradient {
+            state: get(&self.state)?,
+            env: self.env.as_ref().map(get).transpose()?,
+            image: self.image.as_ref().map(get).transpose()?,
+        })
     }
 }
 
@@ -568,6 +690,9 @@ impl ChunkPolicy for DiffusionPolicy {
     fn attackable(&self) -> Option<&dyn AttackablePolicy> {
         Some(self)
     }
+    fn predict_chunks(&self, queries: &mut [Query<'_>]) -> Result<Vec<Vec<f32>>, PolicyError> {
+        self.predict_batch(queries)
+    }
 }
 
 impl AttackablePolicy for DiffusionPolicy {
@@ -579,5 +704,16 @@ impl AttackablePolicy for DiffusionPolicy {
         sample_rng: &mut dyn RngCore,
     ) -> Result<Vec<f32>, PolicyError> {
         Ok(self.pgd_attack(history, pgd, attack_rng, sample_rng)?.chunk)
+    }
+    fn predict_chunks_attacked(
+        &self,
+        queries: &mut [AttackedQuery<'_>],
+        pgd: &crate::attack::PgdConfig,
+    ) -> Result<Vec<Vec<f32>>, PolicyError> {
+        Ok(self
+            .pgd_attack_batch(queries, pgd)?
+            .into_iter()
+            .map(|o| o.chunk)
+            .collect())
     }
 }

@@ -7,7 +7,9 @@
 //! `(B, n_obs_steps * per_step_dim)`.
 
 use candle_core::{D, Device, Module, Result, Tensor};
-use candle_nn::{GroupNorm, Linear, VarBuilder};
+use candle_nn::{GroupNorm, VarBuilder};
+
+use crate::kernels::{Linear, linear};
 
 use crate::config::DiffusionConfig;
 
@@ -85,18 +87,10 @@ impl Conv1dGemm {
         } else {
             (cols, full)
         };
-        // One (C_out, C k) x (C k, B T) product: no per-batch copies of the weight.
-        let cols = cols
-            .reshape((b, c * k, t_out))?
-            .transpose(0, 1)?
-            .contiguous()?
-            .reshape((c * k, b * t_out))?;
-        let w = self.weight.reshape((cout, c * k))?;
-        let y = w
-            .matmul(&cols)?
-            .reshape((cout, b, t_out))?
-            .transpose(0, 1)?
-            .contiguous()?;
+        // One (C_out, C k) x (C k, T) product per sample: batch-invariant
+        // (`kernels::batch`), and a batch of one is the single product it always was.
+        let cols = cols.reshape((b, c * k, t_out))?;
+        let y = crate::kernels::left_shared(&self.weight.reshape((cout, c * k))?, &cols)?;
         y.broadcast_add(&self.bias.reshape((1, cout, 1))?)
     }
 }
@@ -146,7 +140,7 @@ impl ResidualBlock {
         } else {
             cout
         };
-        let cond_encoder = candle_nn::linear(cond_dim, cond_ch, vb.pp("cond_encoder.1"))?;
+        let cond_encoder = linear(cond_dim, cond_ch, vb.pp("cond_encoder.1"))?;
         let conv2 = Conv1dBlock::new(cout, cout, c.kernel_size, c.n_groups, vb.pp("conv2"))?;
         let residual_conv = if cin != cout {
             Some(Conv1dGemm::new(cin, cout, 1, 1, 0, vb.pp("residual_conv"))?)
@@ -274,8 +268,8 @@ impl ConditionalUnet1d {
         let action_dim = c
             .action_dim()
             .map_err(|err| candle_core::Error::Msg(err.to_string()))?;
-        let step_lin1 = candle_nn::linear(e, 4 * e, vb.pp("diffusion_step_encoder.1"))?;
-        let step_lin2 = candle_nn::linear(4 * e, e, vb.pp("diffusion_step_encoder.3"))?;
+        let step_lin1 = linear(e, 4 * e, vb.pp("diffusion_step_encoder.1"))?;
+        let step_lin2 = linear(4 * e, e, vb.pp("diffusion_step_encoder.3"))?;
         let cond_dim = e + global_cond_dim;
         let mut in_out = vec![(action_dim, c.down_dims[0])];
         for w in c.down_dims.windows(2) {

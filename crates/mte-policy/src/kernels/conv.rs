@@ -181,13 +181,12 @@ pub fn conv2d(x: &Tensor, weight: &Tensor, stride: usize, pad: usize) -> Result<
     };
     let (ho, wo) = g.out_hw();
     let cols = x.contiguous()?.apply_op1(Im2Col(g))?;
-    let y = cols
-        .reshape((b * ho * wo, g.ckk()))?
-        .matmul(&weight.reshape((co, g.ckk()))?.t()?)?;
-    y.reshape((b, ho * wo, co))?
-        .transpose(1, 2)?
-        .contiguous()?
-        .reshape((b, co, ho, wo))
+    // One (H_out W_out, C k k) x (C k k, C_out) product per image (batch-invariant).
+    let y = super::right_shared(
+        &cols.reshape((b, ho * wo, g.ckk()))?,
+        &weight.reshape((co, g.ckk()))?.t()?,
+    )?;
+    y.transpose(1, 2)?.contiguous()?.reshape((b, co, ho, wo))
 }
 
 /// A convolution layer with candle_nn's parameter names (`weight`, optional `bias`) whose

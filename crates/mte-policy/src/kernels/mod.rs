@@ -8,10 +8,12 @@
 //! differences in their tests). On other devices every function here falls back to candle's
 //! own ops, so a CUDA build needs no change.
 
+mod batch;
 mod conv;
 mod norm;
 mod pool;
 
+pub use batch::{Linear, left_shared, linear, right_shared};
 pub use conv::{Conv2d, conv2d};
 pub use norm::{GroupNorm, group_norm};
 pub use pool::max_pool_3x3_s2;

@@ -86,3 +86,37 @@ pub fn randn(seed: u64, shape: &[usize], sd: f64, dtype: candle_core::DType) -> 
         .and_then(|t| t.to_dtype(dtype))
         .expect("a tensor of the given shape")
 }
+
+/// One-sided 95% quantiles of Student's t, degrees of freedom 1 to 12 (scipy
+/// `t.ppf(0.95, df)`, rounded up in the third decimal).
+const T95: [f64; 12] = [
+    6.314, 2.920, 2.354, 2.132, 2.016, 1.944, 1.895, 1.860, 1.834, 1.813, 1.797, 1.783,
+];
+
+/// Asserts that the mean of `effects` (one per seed, positive = the expected direction) is
+/// significantly above zero: a one-sided one-sample t-test at the 5% level.
+///
+/// For effects whose size varies a lot from seed to seed (one draw near zero among large
+/// ones), where [`assert_clear_effect`]'s "every seed positive, mean > 2 sd" judges the
+/// spread of one small sample rather than the effect; the test's seed count is chosen so
+/// that the effect measured here would pass with a wide margin.
+#[allow(dead_code)]
+pub fn assert_significant_effect(label: &str, effects: &[f64]) {
+    let (mean, sd) = mean_sd(effects);
+    let n = effects.len();
+    assert!((2..=T95.len() + 1).contains(&n), "{label}: {n} seeds");
+    let t = mean / (sd / (n as f64).sqrt());
+    #[allow(clippy::print_stderr)]
+    {
+        eprintln!(
+            "{label}: {effects:?}, mean {mean:.4}, sd {sd:.4}, t {t:.2} (df {})",
+            n - 1
+        );
+    }
+    assert!(
+        t > T95[n - 2],
+        "{label}: effects over seeds {effects:?} (mean {mean:.4}, sd {sd:.4}, t {t:.2}) are not \
+         significantly above zero (one-sided t-test, 5%, needs t > {})",
+        T95[n - 2]
+    );
+}

@@ -1,0 +1,131 @@
+//! Lockstep execution gives the records one-episode-at-a-time execution gives: a small
+//! sweep with the bundled keypoint and image policies (clean, blank bursts, PGD, a
+//! candidate fault; ensembled and open-loop arms) is run alone (`batch = 1`), in lockstep
+//! groups of 3 and in one group per cell, and every record but its timings must agree bit
+//! for bit. Groups of 3 mix seeds and arms differently from whole cells, so a result that
+//! depended on its batch-mates would show.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use mte_eval::Silent;
+use mte_eval::record::Line;
+use mte_eval::store::{RunDir, read_lines};
+use mte_eval::sweep::{CheckpointSource, RunOptions, Shard, SweepSpec, run};
+
+type TestResult = Result<(), Box<dyn std::error::Error>>;
+
+/// Record text (timings zeroed) by (cell, arm, seed).
+type Records = BTreeMap<(String, String, u64), String>;
+
+fn spec(policy: &str, faults: &str) -> Result<SweepSpec, Box<dyn std::error::Error>> {
+    let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/policies");
+    let text = format!(
+        r#"
+name = "lockstep"
+policies = ["{}"]
+arms = ["ewm:0.01", "median", "open-loop"]
+h = [2]
+seeds = {{ first = 100000, count = 3 }}
+max_steps = 24
+{faults}
+"#,
+        assets.join(policy).display()
+    );
+    Ok(SweepSpec::from_toml(&text)?)
+}
+
+/// Every episode record of a run of `spec` with `options`, timings zeroed, by (cell, arm,
+/// seed); errors as their text.
+fn records(spec: &SweepSpec, options: RunOptions) -> Result<Records, Box<dyn std::error::Error>> {
+    let dir = tempfile::tempdir()?;
+    let manifest = spec.manifest(None, 0);
+    let rd = RunDir::create(&dir.path().join("run"), &spec.to_toml()?, &manifest, false)?;
+    let s = run(
+        spec,
+        &manifest,
+        &rd,
+        Shard::default(),
+        options,
+        &CheckpointSource,
+        &Silent,
+    )?;
+    assert_eq!(s.errors, 0, "{s:?}");
+    let mut out = BTreeMap::new();
+    for cell in spec.cells() {
+        for line in read_lines(&rd.cell_path(&cell.id))? {
+            let Line::Episode(mut e) = line else {
+                return Err(format!("an error line in {}", cell.id).into());
+            };
+            e.times = Default::default();
+            out.insert(
+                (e.cell.clone(), e.arm.clone(), e.seed),
+                serde_json::to_string(&e)?,
+            );
+        }
+    }
+    Ok(out)
+}
+
+fn same_records_every_way(spec: &SweepSpec, episodes: usize) -> TestResult {
+    let alone = records(
+        spec,
+        RunOptions {
+            workers: 2,
+            batch: 1,
+        },
+    )?;
+    assert_eq!(alone.len(), episodes);
+    for batch in [3, 64] {
+        let together = records(spec, RunOptions { workers: 2, batch })?;
+        assert_eq!(together.len(), alone.len());
+        for (key, rec) in &alone {
+            assert_eq!(together.get(key), Some(rec), "batch {batch}: {key:?}");
+        }
+    }
+    // The corruption did something, so equal records are not trivially equal.
+    let corrupted = alone
+        .values()
+        .filter(|r| r.contains("\"corrupted_queries\":0"))
+        .count();
+    assert!(
+        corrupted < alone.len(),
+        "some episode had corrupted queries"
+    );
+    Ok(())
+}
+
+#[test]
+fn keypoint_policy_lockstep_equals_alone() -> TestResult {
+    let s = spec(
+        "pusht_keypoints_cpu",
+        r#"
+[[corruptions]]
+fault = { kind = "blank" }
+q = [0, 2]
+
+[[corruptions]]
+fault = { kind = "pgd", iterations = 2 }
+q = [2]
+
+[[corruptions]]
+fault = { kind = "common-mode", magnitude = 30.0, angle_deg = 45.0 }
+q = [1]
+"#,
+    )?;
+    // 4 cells x 3 seeds x 3 arms.
+    same_records_every_way(&s, 36)
+}
+
+#[test]
+fn image_policy_lockstep_equals_alone() -> TestResult {
+    let s = spec(
+        "pusht_image_cpu",
+        r#"
+[[corruptions]]
+fault = { kind = "blank" }
+q = [2]
+"#,
+    )?;
+    same_records_every_way(&s, 9)
+}

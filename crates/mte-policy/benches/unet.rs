@@ -94,7 +94,7 @@ fn unet_train_step(bencher: divan::Bencher) {
     let cond = Tensor::randn(0f32, 1.0, (64, 2 * (2 + 16)), &Device::Cpu).expect("cond");
     let x0 = Tensor::randn(0f32, 0.5, (64, 16, 2), &Device::Cpu).expect("x0");
     let eps = Tensor::randn(0f32, 1.0, (64, 16, 2), &Device::Cpu).expect("eps");
-    let ts: Vec<usize> = (0..64).map(|i| i * 3).collect();
+    let ts: Vec<usize> = (0..64).map(|i| (i * 3) % 100).collect();
     bencher.bench_local(|| {
         let loss = p.loss(&cond, &x0, &eps, &ts, None).expect("loss");
         let grads = loss.backward().expect("backward");
@@ -116,6 +116,30 @@ fn pgd_iteration(bencher: divan::Bencher, preset: &str) {
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     bencher.bench_local(|| p.pgd_perturb(&hist, &x0, &cfg, &mut rng).expect("pgd"));
+}
+
+/// One PGD iteration for 16 attacked queries at once (as the lockstep runner attacks them):
+/// divide by 16 for the time per attacked query, against `pgd_iteration` at batch 1.
+#[divan::bench(args = ["cpu-image", "cpu-keypoints"], sample_count = 3)]
+fn pgd_iteration_batch_16(bencher: divan::Bencher, preset: &str) {
+    let (p, _vm) = policy(preset);
+    let hist = history(preset);
+    let clean = p.obs_batch(&vec![hist.as_slice(); 16]).expect("batch");
+    let x0 = Tensor::randn(0f32, 0.5, (16, 16, 2), &Device::Cpu).expect("x0");
+    let cfg = mte_policy::PgdConfig {
+        iterations: 1,
+        ..mte_policy::PgdConfig::default()
+    };
+    let mut rngs: Vec<rand_chacha::ChaCha8Rng> = (0..16)
+        .map(rand_chacha::ChaCha8Rng::seed_from_u64)
+        .collect();
+    bencher.bench_local(|| {
+        let mut r: Vec<&mut dyn rand::RngCore> = rngs
+            .iter_mut()
+            .map(|r| r as &mut dyn rand::RngCore)
+            .collect();
+        p.pgd_perturb_batch(&clean, &x0, &cfg, &mut r).expect("pgd")
+    });
 }
 
 /// The image encoder's share of one training step: forward and backward of its features for

@@ -14,7 +14,7 @@ use crate::kernels::{Conv2d, GroupNorm, max_pool_3x3_s2};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
-use crate::kernels::Linear;
+use crate::kernels::{Linear, Products};
 
 const GN_EPS: f64 = 1e-5;
 
@@ -62,11 +62,14 @@ impl BasicBlock {
         })
     }
 
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let out = self.bn1.forward(&self.conv1.forward(x)?)?.relu()?;
-        let out = self.bn2.forward(&self.conv2.forward(&out)?)?;
+    fn forward(&self, x: &Tensor, products: Products) -> Result<Tensor> {
+        let out = self
+            .bn1
+            .forward(&self.conv1.forward(x, products)?)?
+            .relu()?;
+        let out = self.bn2.forward(&self.conv2.forward(&out, products)?)?;
         let id = match &self.downsample {
-            Some((c, n)) => n.forward(&c.forward(x)?)?,
+            Some((c, n)) => n.forward(&c.forward(x, products)?)?,
             None => x.clone(),
         };
         (out + id)?.relu()
@@ -142,7 +145,8 @@ impl RgbEncoder {
         }
     }
 
-    /// Evaluation forward: centre crop, backbone, spatial softmax, Linear, ReLU.
+    /// Evaluation forward: centre crop, backbone, spatial softmax, Linear, ReLU; each image
+    /// computed exactly as alone (batch-invariant products, [`Products::PerSample`]).
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let (_, _, h, w) = x.dims4()?;
         let x = match self.crop {
@@ -151,47 +155,55 @@ impl RgbEncoder {
             }
             None => x.clone(),
         };
-        self.forward_cropped(&x)
+        Ok(self.forward_parts(&x, Products::PerSample)?.feature)
     }
 
-    /// Forward on an already cropped batch (training applies its own random crops).
+    /// Forward on an already cropped batch (training applies its own random crops), with
+    /// the whole batch's products fused ([`Products::Fused`]: training needs no batch
+    /// invariance).
     pub fn forward_cropped(&self, x: &Tensor) -> Result<Tensor> {
-        Ok(self.forward_parts(x)?.feature)
+        Ok(self.forward_parts(x, Products::Fused)?.feature)
     }
 
     /// The backbone's activation after the stem (conv, norm, ReLU, max pool) and after each
     /// of the four layers, for a cropped batch.
-    pub fn backbone_stages(&self, x: &Tensor) -> Result<Vec<Tensor>> {
-        let h = self.bn1.forward(&self.conv1.forward(x)?)?.relu()?;
+    pub fn backbone_stages(&self, x: &Tensor, products: Products) -> Result<Vec<Tensor>> {
+        let h = self
+            .bn1
+            .forward(&self.conv1.forward(x, products)?)?
+            .relu()?;
         // Max pool 3x3, stride 2, padding 1: after ReLU every value is >= 0, so zero padding
         // is equivalent to torch's -inf padding.
         let mut h = max_pool_3x3_s2(&h)?;
         let mut out = vec![h.clone()];
         for layer in &self.layers {
             for block in layer {
-                h = block.forward(&h)?;
+                h = block.forward(&h, products)?;
             }
             out.push(h.clone());
         }
         Ok(out)
     }
 
-    /// The intermediate activations of [`RgbEncoder::forward_cropped`]: the backbone's
+    /// The intermediate activations of the encoder on a cropped batch: the backbone's
     /// feature map `(B, 512, h, w)`, the spatial-softmax keypoints `(B, K, 2)` and the
     /// output feature `(B, 2K)` (for monitors, probes and attacks).
-    pub fn forward_parts(&self, x: &Tensor) -> Result<EncoderParts> {
+    pub fn forward_parts(&self, x: &Tensor, products: Products) -> Result<EncoderParts> {
         let h = self
-            .backbone_stages(x)?
+            .backbone_stages(x, products)?
             .pop()
             .ok_or_else(|| candle_core::Error::Msg("backbone produced no stage".into()))?;
-        let f = self.keypoints.forward(&h)?;
+        let f = self.keypoints.forward(&h, products)?;
         let (b, k, fh, fw) = f.dims4()?;
         // The composed softmax, not candle's fused `softmax_last_dim`: the fused kernel has
         // no backward pass, which would cut the observation gradient (PGD) at this point.
         let att = candle_nn::ops::softmax(&f.reshape((b, k, fh * fw))?, candle_core::D::Minus1)?;
         let grid = pos_grid(fh, fw, x.device())?.to_dtype(f.dtype())?;
-        let keypoints = crate::kernels::right_shared(&att, &grid)?;
-        let feature = self.out.forward(&keypoints.reshape((b, k * 2))?)?.relu()?;
+        let keypoints = crate::kernels::right_shared(&att, &grid, products)?;
+        let feature = self
+            .out
+            .forward(&keypoints.reshape((b, k * 2))?, products)?
+            .relu()?;
         Ok(EncoderParts {
             feature_map: h,
             keypoints,

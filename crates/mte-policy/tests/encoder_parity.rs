@@ -104,7 +104,9 @@ fn encoder_matches_lerobot_with_formula_weights() {
     );
     assert_eq!(RgbEncoder::center_offset(96, 84), 6);
     let cropped = enc.crop_at(&x, 6, 6).expect("crop");
-    let parts = enc.forward_parts(&cropped).expect("forward");
+    let parts = enc
+        .forward_parts(&cropped, mte_policy::kernels::Products::PerSample)
+        .expect("forward");
     assert_eq!(parts.feature_map.dims(), &[2, 512, 3, 3]);
     let f64s = |t: &Tensor| -> Vec<f64> { t.flatten_all().expect("f").to_vec1().expect("v") };
     for (i, r) in f["float64"]

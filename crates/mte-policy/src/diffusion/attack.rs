@@ -105,7 +105,7 @@ impl DiffusionPolicy {
     /// gradient its own ([`DiffusionPolicy::observation_gradient_per_query`]): each query is
     /// perturbed as it would be alone. Returns the perturbed batch and each query's first
     /// and last loss.
-    fn pgd_perturb_batch(
+    pub fn pgd_perturb_batch(
         &self,
         clean: &ObsBatch,
         x0: &Tensor,

@@ -11,6 +11,7 @@ use rand_distr::{Distribution, StandardNormal};
 
 use crate::config::{DiffusionConfig, FeatureType};
 use crate::error::{PolicyError, config_err};
+use crate::kernels::Products;
 use crate::normalize::{NormMode, Normalizer, Stats};
 pub use crate::policy::Observation;
 use crate::policy::{AttackablePolicy, AttackedQuery, ChunkPolicy, ObsNeeds, Query};
@@ -484,7 +485,8 @@ impl DiffusionPolicy {
 
     /// The training loss (noise-prediction MSE, mean over all elements, or over unpadded
     /// rows when `do_mask_loss_for_padding`) for normalised actions `x0 (B, horizon, d)`,
-    /// given `eps` of the same shape and one timestep per row.
+    /// given `eps` of the same shape and one timestep per row. A training loss: the batch's
+    /// products are fused ([`Products::Fused`]), so a row's value may depend on the batch.
     pub fn loss(
         &self,
         cond: &Tensor,
@@ -493,7 +495,7 @@ impl DiffusionPolicy {
         timesteps: &[usize],
         pad: Option<&Tensor>,
     ) -> Result<Tensor, PolicyError> {
-        let se = self.squared_error(cond, x0, eps, timesteps)?;
+        let se = self.squared_error(cond, x0, eps, timesteps, Products::Fused)?;
         let loss = match (self.config.do_mask_loss_for_padding, pad) {
             (true, Some(p)) => {
                 // p: (B, horizon) with 1 where padded.
@@ -512,6 +514,7 @@ impl DiffusionPolicy {
         x0: &Tensor,
         eps: &Tensor,
         timesteps: &[usize],
+        products: Products,
     ) -> Result<Tensor, PolicyError> {
         let abar = self.scheduler.alphas_cumprod();
         let b = timesteps.len();
@@ -527,7 +530,7 @@ impl DiffusionPolicy {
         let sa = Tensor::from_vec(sa, (b, 1, 1), &self.device)?.to_dtype(x0.dtype())?;
         let sb = Tensor::from_vec(sb, (b, 1, 1), &self.device)?.to_dtype(x0.dtype())?;
         let noisy = (x0.broadcast_mul(&sa)? + eps.broadcast_mul(&sb)?)?;
-        let pred = self.unet.forward(&noisy, timesteps, cond)?;
+        let pred = self.unet.forward_with(&noisy, timesteps, cond, products)?;
         let target = match self.config.prediction_type.as_str() {
             "sample" => x0.clone(),
             _ => eps.clone(),
@@ -600,7 +603,7 @@ impl DiffusionPolicy {
             Ok(t.unsqueeze(1)?.repeat(reps)?.reshape(dims)?)
         };
         let (cond, x0) = (per_query(&cond)?, per_query(x0)?);
-        let se = self.squared_error(&cond, &x0, eps, timesteps)?;
+        let se = self.squared_error(&cond, &x0, eps, timesteps, Products::PerSample)?;
         let losses = se.reshape((b, ()))?.mean(1)?;
         let grads = losses.sum_all()?.backward()?;
         Ok((

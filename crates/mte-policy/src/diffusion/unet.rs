@@ -9,7 +9,7 @@
 use candle_core::{D, Device, Module, Result, Tensor};
 use candle_nn::{GroupNorm, VarBuilder};
 
-use crate::kernels::{Linear, linear};
+use crate::kernels::{Linear, Products, linear};
 
 use crate::config::DiffusionConfig;
 
@@ -52,7 +52,7 @@ impl Conv1dGemm {
     }
 
     /// `(B, C_in, T)` -> `(B, C_out, T_out)`.
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    pub fn forward(&self, x: &Tensor, products: Products) -> Result<Tensor> {
         let (b, c, t) = x.dims3()?;
         let (cout, _, k) = self.weight.dims3()?;
         let xp = if self.pad > 0 {
@@ -87,10 +87,11 @@ impl Conv1dGemm {
         } else {
             (cols, full)
         };
-        // One (C_out, C k) x (C k, T) product per sample: batch-invariant
-        // (`kernels::batch`), and a batch of one is the single product it always was.
+        // One (C_out, C k) x (C k, T) product per sample (batch-invariant; a batch of one is
+        // the single product it always was), or one for the batch (`kernels::batch`).
         let cols = cols.reshape((b, c * k, t_out))?;
-        let y = crate::kernels::left_shared(&self.weight.reshape((cout, c * k))?, &cols)?;
+        let w = self.weight.reshape((cout, c * k))?;
+        let y = crate::kernels::left_shared(&w, &cols, products)?;
         y.broadcast_add(&self.bias.reshape((1, cout, 1))?)
     }
 }
@@ -110,8 +111,8 @@ impl Conv1dBlock {
     }
 
     /// `(B, C_in, T)` -> `(B, C_out, T)`.
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        candle_nn::ops::mish(&self.norm.forward(&self.conv.forward(x)?)?)
+    pub fn forward(&self, x: &Tensor, products: Products) -> Result<Tensor> {
+        candle_nn::ops::mish(&self.norm.forward(&self.conv.forward(x, products)?)?)
     }
 }
 
@@ -158,11 +159,11 @@ impl ResidualBlock {
     }
 
     /// `x`: `(B, C_in, T)`, `cond`: `(B, cond_dim)` -> `(B, C_out, T)`.
-    pub fn forward(&self, x: &Tensor, cond: &Tensor) -> Result<Tensor> {
-        let out = self.conv1.forward(x)?;
+    pub fn forward(&self, x: &Tensor, cond: &Tensor, products: Products) -> Result<Tensor> {
+        let out = self.conv1.forward(x, products)?;
         let emb = self
             .cond_encoder
-            .forward(&candle_nn::ops::mish(cond)?)?
+            .forward(&candle_nn::ops::mish(cond)?, products)?
             .unsqueeze(D::Minus1)?;
         let out = if self.film_scale {
             let scale = emb.narrow(1, 0, self.out_channels)?;
@@ -171,9 +172,9 @@ impl ResidualBlock {
         } else {
             out.broadcast_add(&emb)?
         };
-        let out = self.conv2.forward(&out)?;
+        let out = self.conv2.forward(&out, products)?;
         let res = match &self.residual_conv {
-            Some(c) => c.forward(x)?,
+            Some(c) => c.forward(x, products)?,
             None => x.clone(),
         };
         out + res
@@ -223,7 +224,7 @@ impl Upsample {
     }
 
     /// `(B, C_in, T)` -> `(B, C_out, 2T)`.
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    pub fn forward(&self, x: &Tensor, products: Products) -> Result<Tensor> {
         let (b, c, t) = x.dims3()?;
         // Insert a zero after every sample: (B, C, 2T - 1).
         let z = Tensor::cat(&[&x.unsqueeze(3)?, &x.zeros_like()?.unsqueeze(3)?], 3)?
@@ -244,7 +245,7 @@ impl Upsample {
             stride: 1,
             pad: self.k - 2,
         };
-        conv.forward(&z)
+        conv.forward(&z, products)
     }
 }
 
@@ -344,45 +345,68 @@ impl ConditionalUnet1d {
     /// The timestep encoder's output (`diffusion_step_encoder`: sinusoid, Linear, Mish,
     /// Linear): `(B, embed_dim)`.
     pub fn step_encoder(&self, timesteps: &[usize], device: &Device) -> Result<Tensor> {
+        self.step_encoder_with(timesteps, device, Products::PerSample)
+    }
+
+    fn step_encoder_with(
+        &self,
+        timesteps: &[usize],
+        device: &Device,
+        products: Products,
+    ) -> Result<Tensor> {
         let emb = self
             .timestep_embedding(timesteps, device)?
             .to_dtype(self.step_lin1.weight().dtype())?;
-        self.step_lin2
-            .forward(&candle_nn::ops::mish(&self.step_lin1.forward(&emb)?)?)
+        let h = candle_nn::ops::mish(&self.step_lin1.forward(&emb, products)?)?;
+        self.step_lin2.forward(&h, products)
     }
 
     /// Predict from `x` `(B, T, D)` at `timesteps` (one per row) with `global_cond`
-    /// `(B, G)`; returns `(B, T, D)`.
+    /// `(B, G)`; returns `(B, T, D)`. Batch-invariant: each row is computed exactly as a
+    /// batch of one ([`Products::PerSample`]).
     pub fn forward(&self, x: &Tensor, timesteps: &[usize], global_cond: &Tensor) -> Result<Tensor> {
+        self.forward_with(x, timesteps, global_cond, Products::PerSample)
+    }
+
+    /// [`ConditionalUnet1d::forward`] with the products computed as `products` says
+    /// (training: [`Products::Fused`]).
+    pub fn forward_with(
+        &self,
+        x: &Tensor,
+        timesteps: &[usize],
+        global_cond: &Tensor,
+        products: Products,
+    ) -> Result<Tensor> {
         let emb = self
-            .step_encoder(timesteps, x.device())?
+            .step_encoder_with(timesteps, x.device(), products)?
             .to_dtype(x.dtype())?;
         let cond = Tensor::cat(&[&emb, global_cond], D::Minus1)?;
         let mut h = x.transpose(1, 2)?.contiguous()?;
         let mut skips = Vec::with_capacity(self.down.len());
         for d in &self.down {
-            h = d.res1.forward(&h, &cond)?;
-            h = d.res2.forward(&h, &cond)?;
+            h = d.res1.forward(&h, &cond, products)?;
+            h = d.res2.forward(&h, &cond, products)?;
             skips.push(h.clone());
             if let Some(ds) = &d.downsample {
-                h = ds.forward(&h)?;
+                h = ds.forward(&h, products)?;
             }
         }
         for m in &self.mid {
-            h = m.forward(&h, &cond)?;
+            h = m.forward(&h, &cond, products)?;
         }
         for u in &self.up {
             let skip = skips
                 .pop()
                 .ok_or_else(|| candle_core::Error::Msg("U-Net skip underflow".into()))?;
             h = Tensor::cat(&[&h, &skip], 1)?;
-            h = u.res1.forward(&h, &cond)?;
-            h = u.res2.forward(&h, &cond)?;
+            h = u.res1.forward(&h, &cond, products)?;
+            h = u.res2.forward(&h, &cond, products)?;
             if let Some(us) = &u.upsample {
-                h = us.forward(&h)?;
+                h = us.forward(&h, products)?;
             }
         }
-        let h = self.final_conv.forward(&self.final_block.forward(&h)?)?;
+        let h = self.final_block.forward(&h, products)?;
+        let h = self.final_conv.forward(&h, products)?;
         h.transpose(1, 2)?.contiguous()
     }
 }
@@ -406,7 +430,7 @@ mod tests {
             .expect("native")
             .broadcast_add(&up.bias.reshape((1, 5, 1)).expect("b"))
             .expect("bias");
-        let ours = up.forward(&x).expect("ours");
+        let ours = up.forward(&x, Products::PerSample).expect("ours");
         assert_eq!(ours.dims(), &[2, 5, 14]);
         let d: f32 = (ours - native)
             .expect("diff")

@@ -15,7 +15,7 @@
 
 use super::contiguous;
 use candle_core::backend::BackendStorage;
-use candle_core::{CpuStorage, CustomOp1, Layout, Module, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, Layout, Result, Shape, Tensor};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
@@ -158,8 +158,15 @@ impl CustomOp1 for Col2Im {
 }
 
 /// Convolution of `x (B, C, H, W)` with `weight (C_out, C, k_h, k_w)`, zero padding `pad`,
-/// stride `stride`: im2col + matmul on the CPU, candle's `conv2d` elsewhere.
-pub fn conv2d(x: &Tensor, weight: &Tensor, stride: usize, pad: usize) -> Result<Tensor> {
+/// stride `stride`: im2col + matmul on the CPU (one product per image, or one for the batch:
+/// `products`), candle's `conv2d` elsewhere.
+pub fn conv2d(
+    x: &Tensor,
+    weight: &Tensor,
+    stride: usize,
+    pad: usize,
+    products: super::Products,
+) -> Result<Tensor> {
     if !x.device().is_cpu() {
         return x.conv2d(weight, pad, stride, 1, 1);
     }
@@ -181,10 +188,11 @@ pub fn conv2d(x: &Tensor, weight: &Tensor, stride: usize, pad: usize) -> Result<
     };
     let (ho, wo) = g.out_hw();
     let cols = x.contiguous()?.apply_op1(Im2Col(g))?;
-    // One (H_out W_out, C k k) x (C k k, C_out) product per image (batch-invariant).
+    // (H_out W_out, C k k) x (C k k, C_out) per image, or for the batch at once.
     let y = super::right_shared(
         &cols.reshape((b, ho * wo, g.ckk()))?,
         &weight.reshape((co, g.ckk()))?.t()?,
+        products,
     )?;
     y.transpose(1, 2)?.contiguous()?.reshape((b, co, ho, wo))
 }
@@ -229,9 +237,10 @@ impl Conv2d {
     }
 }
 
-impl Module for Conv2d {
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let y = conv2d(x, &self.weight, self.stride, self.pad)?;
+impl Conv2d {
+    /// `(B, C, H, W)` -> `(B, C_out, H_out, W_out)`.
+    pub fn forward(&self, x: &Tensor, products: super::Products) -> Result<Tensor> {
+        let y = conv2d(x, &self.weight, self.stride, self.pad, products)?;
         match &self.bias {
             Some(b) => y.broadcast_add(&b.reshape((1, b.dim(0)?, 1, 1))?),
             None => Ok(y),
@@ -262,7 +271,10 @@ mod tests {
         for (i, &(c, h, w, k, s, p)) in CASES.iter().enumerate() {
             let x = rand(&[2, c, h, w], i as u64);
             let wt = rand(&[3, c, k, k], 100 + i as u64);
-            let ours = conv2d(&x, &wt, s, p)?;
+            let ours = conv2d(&x, &wt, s, p, super::super::Products::PerSample)?;
+            let fused = conv2d(&x, &wt, s, p, super::super::Products::Fused)?;
+            let d = crate::kernels::test_util::max_diff(&ours, &fused);
+            assert!(d < 1e-9, "fused and per-image agree in f64: {d}");
             let theirs = x.conv2d(&wt, p, s, 1, 1)?;
             assert_eq!(ours.dims(), theirs.dims(), "case {i}");
             let err = (ours - theirs)?.abs()?.max_all()?.to_scalar::<f64>()?;
@@ -285,7 +297,9 @@ mod tests {
             let (ho, wo) = ((h + 2 * p - k) / s + 1, (w + 2 * p - k) / s + 1);
             // A non-uniform upstream gradient, so a transposed or shifted tap shows up.
             let r = rand(&[2, 3, ho, wo], 300 + i as u64);
-            let probe = |x: &Tensor, wt: &Tensor| (conv2d(x, wt, s, p)? * &r)?.sum_all();
+            let probe = |x: &Tensor, wt: &Tensor| {
+                (conv2d(x, wt, s, p, super::super::Products::Fused)? * &r)?.sum_all()
+            };
             let ours = probe(x.as_tensor(), wt.as_tensor())?.backward()?;
             if i != 2 {
                 let y = x.as_tensor().conv2d(wt.as_tensor(), p, s, 1, 1)?;
@@ -331,8 +345,8 @@ mod tests {
         let vm = candle_nn::VarMap::new();
         let vb = crate::init::seeded_var_builder(&vm, 7, DType::F32, &Device::Cpu);
         let layer = Conv2d::new(3, 5, 3, 1, 1, true, vb.pp("c"))?;
-        let x = rand(&[1, 3, 6, 6], 9).to_dtype(DType::F32)?;
-        let y = layer.forward(&x)?;
+        let x = rand(&[2, 3, 6, 6], 9).to_dtype(DType::F32)?;
+        use candle_core::Module;
         let reference = candle_nn::Conv2d::new(
             layer.weight.clone(),
             layer.bias.clone(),
@@ -342,8 +356,14 @@ mod tests {
             },
         )
         .forward(&x)?;
-        let err = (y - reference)?.abs()?.max_all()?.to_scalar::<f32>()?;
-        assert!(err < 1e-5, "f32 max |diff| {err}");
+        for products in [
+            super::super::Products::PerSample,
+            super::super::Products::Fused,
+        ] {
+            let y = layer.forward(&x, products)?;
+            let err = (y - &reference)?.abs()?.max_all()?.to_scalar::<f32>()?;
+            assert!(err < 1e-5, "f32 max |diff| {err}");
+        }
         Ok(())
     }
 
@@ -351,7 +371,8 @@ mod tests {
     fn mismatched_channels_are_an_error() {
         let x = rand(&[1, 3, 8, 8], 1);
         let w = rand(&[4, 2, 3, 3], 2);
-        let e = conv2d(&x, &w, 1, 1).expect_err("3 channels into a 2-channel kernel");
+        let e = conv2d(&x, &w, 1, 1, super::super::Products::Fused)
+            .expect_err("3 channels into a 2-channel kernel");
         assert!(e.to_string().contains("does not fit"), "{e}");
     }
 }

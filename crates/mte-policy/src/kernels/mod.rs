@@ -13,7 +13,7 @@ mod conv;
 mod norm;
 mod pool;
 
-pub use batch::{Linear, left_shared, linear, right_shared};
+pub use batch::{Linear, Products, left_shared, linear, right_shared};
 pub use conv::{Conv2d, conv2d};
 pub use norm::{GroupNorm, group_norm};
 pub use pool::max_pool_3x3_s2;

@@ -145,6 +145,16 @@ pub enum EnsembleError {
     /// An aggregation failed.
     #[error(transparent)]
     Aggregate(#[from] AggregateError),
+    /// A monitored chunk had a NaN or infinite value (monitors score finite chunks only).
+    #[error(
+        "chunk value at row {row}, coordinate {col} is NaN or infinite: monitors need finite chunks"
+    )]
+    NonFiniteChunk {
+        /// Row of the chunk.
+        row: usize,
+        /// Coordinate.
+        col: usize,
+    },
 }
 
 /// A failure of one aggregation.

@@ -83,6 +83,7 @@ pub mod bracket;
 mod ensembler;
 mod error;
 pub mod geometry;
+pub mod monitor;
 mod network;
 
 pub use aggregate::{
@@ -95,3 +96,4 @@ pub use ensembler::{
 };
 pub use error::{AggregateError, EnsembleError, GeometryError, ParseAggregatorError};
 pub use geometry::ChunkGeometry;
+pub use monitor::{Acc, Monitor, MonitorError, MonitorKind, Threshold, Tide};

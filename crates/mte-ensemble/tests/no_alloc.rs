@@ -1,5 +1,5 @@
-//! `insert` and `action` never touch the heap after construction, for every aggregator,
-//! proven with a counting global allocator.
+//! `insert` and `action` never touch the heap after construction, for every aggregator, nor
+//! do the monitors' `observe`, proven with a counting global allocator.
 //!
 //! This file holds a single test so that no other test thread allocates while counting.
 #![allow(clippy::unwrap_used)]
@@ -8,7 +8,8 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 
 use mte_ensemble::{
-    Aggregator, ChunkGeometry, EnsemblerOptions, QueryMeta, TemporalEnsembler, WeightOrder,
+    Aggregator, ChunkGeometry, EnsemblerOptions, MonitorKind, QueryMeta, TemporalEnsembler,
+    WeightOrder,
 };
 
 struct Counting;
@@ -99,6 +100,22 @@ fn steady_state_steps_do_not_allocate() {
                     "{agg} t_p={t_p} h={h} d={d}: {n} allocations in 900 steps"
                 );
             }
+        }
+        // The monitors, per query, including their error paths.
+        let chunk: Vec<f32> = (0..t_p * d).map(|i| (i as f32 * 0.37).sin()).collect();
+        for kind in [MonitorKind::Tide, MonitorKind::Acc] {
+            let mut m = kind.build(g, d, 1e-3).unwrap();
+            let start = allocations();
+            for _ in 0..3 {
+                m.reset();
+                for tau in (0..300u64).step_by(h) {
+                    let _ = m.observe(tau, &chunk).unwrap();
+                }
+                assert!(m.observe(0, &chunk).is_err());
+                assert!(m.observe(10_000, &chunk[1..]).is_err());
+            }
+            let n = allocations() - start;
+            assert_eq!(n, 0, "{kind} t_p={t_p} h={h} d={d}: {n} allocations");
         }
     }
 }

@@ -61,6 +61,10 @@ pub enum Command {
     /// Defences: encoder adversarial fine-tuning and its gradient probe.
     #[command(subcommand)]
     Defend(DefendCommand),
+    /// Runtime monitors (TIDE, ACC) on recorded runs: thresholds from clean episodes, then
+    /// firing rates and AUROC per cell.
+    #[command(subcommand)]
+    Monitor(MonitorCommand),
     /// Work with recorded chunk streams.
     #[command(subcommand)]
     Ensemble(EnsembleCommand),
@@ -601,6 +605,58 @@ pub enum AttackCommand {
     /// the patch's mean colour (evaluate it beside the patch: the patch's effect beyond it is
     /// its pattern's, not the occlusion's).
     Control(AttackControlArgs),
+}
+
+/// `mte monitor ...`
+#[derive(Debug, Subcommand)]
+pub enum MonitorCommand {
+    /// Thresholds from the clean episodes of a run recorded with monitors, by each monitor's
+    /// own rule (TIDE: split conformal at alpha 0.001 over pooled query scores; ACC: the
+    /// ceil((n+1)(1-delta))-th largest episode maximum, delta 0.05); writes a JSON file a
+    /// control loop can load.
+    Calibrate(MonitorCalibrateArgs),
+    /// Firing rate, first alarm and AUROC (against the clean cell of the same stride) of
+    /// every cell and arm of a run, with thresholds from `mte monitor calibrate`.
+    Evaluate(MonitorEvaluateArgs),
+}
+
+/// `mte monitor calibrate`
+#[derive(Debug, Args)]
+pub struct MonitorCalibrateArgs {
+    /// Run directory holding the clean calibration cell.
+    pub run: PathBuf,
+    /// The clean cell (default: the run's only clean cell).
+    #[arg(long)]
+    pub cell: Option<String>,
+    /// The arm whose episodes calibrate.
+    #[arg(long, default_value = "ewm:0.01")]
+    pub arm: String,
+    /// Calibrate on every episode, not only the successful ones.
+    #[arg(long)]
+    pub all_episodes: bool,
+    /// TIDE over each episode's maximum instead of pooled query scores (then at alpha 0.001
+    /// fewer than 999 episodes give a threshold that can never fire).
+    #[arg(long)]
+    pub tide_episode_max: bool,
+    /// TIDE's alpha.
+    #[arg(long, default_value_t = 0.001)]
+    pub alpha: f64,
+    /// ACC's delta.
+    #[arg(long, default_value_t = 0.05)]
+    pub delta: f64,
+    /// Where to write the thresholds (JSON).
+    #[arg(long, short, value_name = "FILE")]
+    pub out: PathBuf,
+}
+
+/// `mte monitor evaluate`
+#[derive(Debug, Args)]
+pub struct MonitorEvaluateArgs {
+    /// Run directory recorded with monitors.
+    pub run: PathBuf,
+    /// Thresholds from `mte monitor calibrate` (on other episodes than these).
+    #[arg(long, value_name = "FILE")]
+    pub thresholds: PathBuf,
 }
 
 /// `mte attack control`

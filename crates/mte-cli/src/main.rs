@@ -13,7 +13,7 @@ use clap::Parser;
 
 use crate::args::{
     AttackCommand, Cli, Command, DataCommand, DefendCommand, EnsembleCommand, EvalCommand,
-    SimCommand, TrainCommand,
+    MonitorCommand, SimCommand, TrainCommand,
 };
 
 fn main() -> ExitCode {
@@ -29,6 +29,8 @@ fn main() -> ExitCode {
         Command::Attack(AttackCommand::Control(a)) => cmd::attack::control(&cli, a),
         Command::Defend(DefendCommand::Finetune(a)) => cmd::attack::finetune(&cli, a),
         Command::Defend(DefendCommand::Probe(a)) => cmd::attack::probe(&cli, a),
+        Command::Monitor(MonitorCommand::Calibrate(a)) => cmd::monitor::calibrate(&cli, a),
+        Command::Monitor(MonitorCommand::Evaluate(a)) => cmd::monitor::evaluate(&cli, a),
         Command::Ensemble(EnsembleCommand::Replay(a)) => cmd::replay::run(&cli, a),
         Command::Sim(SimCommand::Render(a)) => cmd::sim::render(&cli, a),
         Command::Sim(SimCommand::Rollout(a)) => cmd::sim::rollout(&cli, a),

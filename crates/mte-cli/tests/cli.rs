@@ -767,3 +767,125 @@ fn film_writes_both_figures_and_bad_values_exit_2() {
         .code(2)
         .stderr(predicate::str::contains("expected `exact` or `chi2-cc`"));
 }
+
+/// A sweep with monitors records every query's scores; `mte monitor calibrate` makes
+/// thresholds from its clean cell (and says when a rule can never fire), `mte monitor
+/// evaluate` reports firing rates and AUROC against the clean cell.
+#[test]
+fn monitors_record_calibrate_and_evaluate() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    let spec = format!(
+        r#"
+name = "monitors"
+policies = ["{}"]
+arms = ["ewm:0.01", "median"]
+h = [2]
+seeds = {{ first = 100000, count = 4 }}
+max_steps = 30
+monitors = ["tide", "acc"]
+
+[[corruptions]]
+fault = {{ kind = "blank" }}
+q = [0, 3]
+"#,
+        bundled().display()
+    );
+    fs::write(p("spec.toml"), spec).unwrap();
+    mte()
+        .args(["sweep"])
+        .arg(p("spec.toml"))
+        .arg("--out")
+        .arg(p("run"))
+        .assert()
+        .success();
+    // Every episode carries both traces, one score per query after the first.
+    let cells = p("run").join("cells");
+    let mut seen = 0;
+    for entry in fs::read_dir(&cells).unwrap() {
+        for line in fs::read_to_string(entry.unwrap().path()).unwrap().lines() {
+            let r: serde_json::Value = serde_json::from_str(line).unwrap();
+            let queries = r["queries"].as_u64().unwrap();
+            for m in ["tide", "acc"] {
+                let t = &r["monitors"][m];
+                assert_eq!(t["first_query"], 1, "{r}");
+                let n = t["scores"].as_array().unwrap().len() as u64;
+                assert_eq!(n, queries - 1, "{m}: {r}");
+            }
+            seen += 1;
+        }
+    }
+    assert_eq!(seen, 16, "2 cells x 4 seeds x 2 arms");
+    // Calibrate on every clean episode (a 30-step episode rarely succeeds).
+    let out = json_stdout(
+        mte()
+            .args(["--format", "json", "monitor", "calibrate"])
+            .arg(p("run"))
+            .arg("--all-episodes")
+            .arg("--out")
+            .arg(p("thresholds.json")),
+    );
+    let tide = &out["monitors"]["tide"];
+    // Pooled: every scored query of the 4 clean ewm episodes (at most 14 each); with fewer
+    // than 999 scores k = ceil((n + 1) 0.999) = n + 1 > n: alpha = 0.001 cannot be met.
+    let n = tide["n"].as_u64().unwrap();
+    assert!((4..=56).contains(&n), "{out}");
+    assert_eq!(tide["k"].as_u64(), Some(n + 1), "{out}");
+    assert!(tide["value"].is_null(), "{out}");
+    let acc = &out["monitors"]["acc"];
+    assert_eq!(
+        (acc["n"].as_u64(), acc["k"].as_u64()),
+        (Some(4), Some(4)),
+        "{out}"
+    );
+    assert!(acc["value"].as_f64().unwrap() > 0.0, "{out}");
+    let text = mte()
+        .args(["monitor", "calibrate"])
+        .arg(p("run"))
+        .args(["--all-episodes", "--out"])
+        .arg(p("t2.json"))
+        .assert()
+        .success();
+    let text = String::from_utf8(text.get_output().stdout.clone()).unwrap();
+    assert!(text.contains("can never fire"), "{text}");
+    // Evaluate: one row per cell x arm x monitor, AUROC only for the corrupted cell.
+    let ev = json_stdout(
+        mte()
+            .args(["--format", "json", "monitor", "evaluate"])
+            .arg(p("run"))
+            .arg("--thresholds")
+            .arg(p("thresholds.json")),
+    );
+    let rows = ev["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 8, "{ev}");
+    for r in rows {
+        let clean = r["reference"].is_null();
+        assert_eq!(r["auroc"].is_null(), clean, "{r}");
+        if r["monitor"] == "tide" {
+            assert_eq!(
+                r["fired"], 0,
+                "a threshold that can never fire never fires: {r}"
+            );
+        }
+        if let Some(a) = r["auroc"].as_f64() {
+            assert!((0.0..=1.0).contains(&a), "{r}");
+        }
+    }
+    // Bad input: a corrupted cell cannot calibrate; a missing file is named.
+    mte()
+        .args(["monitor", "calibrate"])
+        .arg(p("run"))
+        .args(["--cell", "nope", "--out"])
+        .arg(p("t3.json"))
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("--cell nope"));
+    mte()
+        .args(["monitor", "evaluate"])
+        .arg(p("run"))
+        .arg("--thresholds")
+        .arg(p("missing.json"))
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("missing.json"));
+}

@@ -24,7 +24,11 @@ fn run(bencher: divan::Bencher, kind: MonitorKind, setup: (usize, usize, usize, 
     let g = ChunkGeometry::new(t_p, t_o, h).expect("geometry");
     let mut m = kind.build(g, d, 1e-3).expect("monitor");
     let chunks: Vec<Vec<f32>> = (0..8)
-        .map(|k| (0..t_p * d).map(|i| ((i + 31 * k) as f32 * 0.37).sin()).collect())
+        .map(|k| {
+            (0..t_p * d)
+                .map(|i| ((i + 31 * k) as f32 * 0.37).sin())
+                .collect()
+        })
         .collect();
     // Warm the ring so every query is scored against a full history.
     let mut t = 0u64;

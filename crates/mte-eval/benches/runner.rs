@@ -69,6 +69,7 @@ fn episode_300_steps(bencher: divan::Bencher, arm: &str) {
         corruption: &corruption,
         noise_seed: 0,
         sampling: Default::default(),
+        monitors: &[],
     };
     bencher.bench_local(|| run_episode(&Fixed, &spec).expect("episode"));
 }

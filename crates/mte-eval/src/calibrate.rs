@@ -100,6 +100,7 @@ fn cell(
                 corruption,
                 noise_seed: spec.noise_seed,
                 sampling: Default::default(),
+                monitors: &[],
             };
             let r = run_episode(policy, &ep)?;
             reporter.advance(1);

@@ -237,6 +237,7 @@ mod tests {
                 q_counts: Vec::new(),
                 bracket: None,
                 times: crate::record::StageTimes::default(),
+                monitors: Default::default(),
             },
             shots: colours
                 .iter()

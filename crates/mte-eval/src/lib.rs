@@ -33,6 +33,7 @@ pub mod film;
 mod label;
 pub mod lockstep;
 pub mod machine;
+pub mod monitoring;
 pub mod patch_file;
 pub mod pusht;
 pub mod record;

@@ -31,7 +31,7 @@ use std::time::Instant;
 
 use mte_ensemble::{
     Aggregator, BracketAccumulator, CandidateHook, Candidates, CandidatesMut, ChunkGeometry,
-    EnsembleError, EnsemblerOptions, NoHook, QueryMeta, TemporalEnsembler,
+    EnsembleError, EnsemblerOptions, Monitor, MonitorKind, NoHook, QueryMeta, TemporalEnsembler,
 };
 use mte_policy::{ChunkPolicy, Observation, PgdConfig, PolicyError};
 use mte_sim::{ResetStream, SimError};
@@ -45,7 +45,7 @@ use crate::corruption::{
 };
 use crate::environment::{Environment, PushTEnv};
 use crate::episode::{EpisodeObserver, NoObserver, QueryEvent, Stage, StageTimer, StepEvent};
-use crate::record::EpisodeRecord;
+use crate::record::{EpisodeRecord, MonitorTrace};
 
 /// How chunks become actions.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -137,7 +137,13 @@ pub struct EpisodeSpec<'a> {
     pub noise_seed: u64,
     /// How the policy's sampling noise varies across queries.
     pub sampling: Sampling,
+    /// Runtime monitors scoring every query (passive: they never change an action).
+    pub monitors: &'a [MonitorKind],
 }
+
+/// ACC's range floor for PushT, in pixels: the spec's 1e-3 in LeRobot's normalised action
+/// units, where PushT's 512 px span [−1, 1] (so 1e-3 x 256 px).
+pub const PUSHT_ACC_V_MIN_PX: f64 = 0.256;
 
 /// How a stochastic policy's sampling noise is drawn across the queries of an episode.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -386,7 +392,58 @@ impl EpisodeObserver for Recorder {
 pub(crate) struct Watchers<'o> {
     rec: Recorder,
     timer: StageTimer,
+    monitors: Monitors,
     user: &'o mut dyn EpisodeObserver,
+}
+
+/// The episode's monitors and their traces.
+#[derive(Default)]
+struct Monitors {
+    running: Vec<(MonitorKind, Box<dyn Monitor + Send>, MonitorTrace)>,
+}
+
+impl Monitors {
+    fn new(kinds: &[MonitorKind], geometry: ChunkGeometry, d: usize) -> Result<Self, RolloutError> {
+        let running = kinds
+            .iter()
+            .map(|&k| {
+                let m =
+                    k.build(geometry, d, PUSHT_ACC_V_MIN_PX)
+                        .map_err(|e| RolloutError::Config {
+                            field: "monitors",
+                            value: k.to_string(),
+                            expected: format!("a monitor this geometry supports ({e})"),
+                        })?;
+                Ok((k, m, MonitorTrace::default()))
+            })
+            .collect::<Result<_, RolloutError>>()?;
+        Ok(Self { running })
+    }
+
+    fn on_query(&mut self, e: &QueryEvent<'_>) {
+        for (_, m, trace) in &mut self.running {
+            if trace.error.is_some() {
+                continue;
+            }
+            match m.observe(e.t, e.chunk) {
+                Ok(Some(score)) => {
+                    if trace.scores.is_empty() {
+                        trace.first_query = e.index;
+                    }
+                    trace.scores.push(score);
+                }
+                Ok(None) => {}
+                Err(err) => trace.error = Some(err.to_string()),
+            }
+        }
+    }
+
+    fn traces(self) -> std::collections::BTreeMap<String, MonitorTrace> {
+        self.running
+            .into_iter()
+            .map(|(k, _, t)| (k.to_string(), t))
+            .collect()
+    }
 }
 
 impl<'o> Watchers<'o> {
@@ -395,6 +452,7 @@ impl<'o> Watchers<'o> {
         Watchers {
             rec: Recorder::default(),
             timer: StageTimer::default(),
+            monitors: Monitors::default(),
             user,
         }
     }
@@ -402,6 +460,7 @@ impl<'o> Watchers<'o> {
 
 impl EpisodeObserver for Watchers<'_> {
     fn on_query(&mut self, e: &QueryEvent<'_>) {
+        self.monitors.on_query(e);
         self.rec.on_query(e);
         self.user.on_query(e);
     }
@@ -546,7 +605,7 @@ impl<'e, 's> Episode<'e, 's> {
         env: &'e mut dyn Environment,
         policy: &dyn ChunkPolicy,
         spec: &'s EpisodeSpec<'s>,
-        w: &mut dyn EpisodeObserver,
+        w: &mut Watchers<'_>,
     ) -> Result<Self, RolloutError> {
         let (t_p, t_o, d) = (policy.horizon(), policy.n_obs_steps(), policy.action_dim());
         let h = spec.h;
@@ -586,6 +645,7 @@ impl<'e, 's> Episode<'e, 's> {
             }
         };
         let corruptor = observation_corruptor(spec)?;
+        w.monitors = Monitors::new(spec.monitors, geometry, d)?;
         let keep = corruptor
             .as_ref()
             .map_or(t_o, |c| c.frames_needed(t_o))
@@ -706,7 +766,7 @@ impl<'e, 's> Episode<'e, 's> {
     /// The episode's record (its `cell` empty: the caller names it).
     pub(crate) fn record(&self, w: Watchers<'_>, t_start: Instant) -> EpisodeRecord {
         let spec = self.spec;
-        let (rec, mut times) = (w.rec, w.timer.times);
+        let (rec, mut times, monitors) = (w.rec, w.timer.times, w.monitors.traces());
         times.total_s = t_start.elapsed().as_secs_f64();
         let ensembled = matches!(spec.execution, Execution::Ensemble(_));
         EpisodeRecord {
@@ -722,6 +782,7 @@ impl<'e, 's> Episode<'e, 's> {
             q_counts: rec.q_counts,
             bracket: (!spec.corruption.is_clean() && ensembled).then_some(rec.bracket),
             times,
+            monitors,
         }
     }
 

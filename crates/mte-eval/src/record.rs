@@ -112,6 +112,29 @@ pub struct EpisodeRecord {
     pub bracket: Option<BracketAccumulator>,
     /// Time per stage.
     pub times: StageTimes,
+    /// Per monitor (`tide`, `acc`), its score of every query after the first, when the
+    /// episode ran with monitors (thresholds are applied afterwards, from calibration).
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub monitors: std::collections::BTreeMap<String, MonitorTrace>,
+}
+
+/// One monitor's scores over an episode.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct MonitorTrace {
+    /// Index of the query `scores[0]` belongs to (1: the first query has no score).
+    pub first_query: u64,
+    /// The score of every query from `first_query` on, in order.
+    pub scores: Vec<f64>,
+    /// Why scoring stopped early, if it did (a chunk the monitor refused).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+impl MonitorTrace {
+    /// The episode score: the largest query score (`None` without any).
+    pub fn max(&self) -> Option<f64> {
+        self.scores.iter().copied().reduce(f64::max)
+    }
 }
 
 /// The most control steps an episode record may claim: 10^9 (gym-pusht's limit is 300), so

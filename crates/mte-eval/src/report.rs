@@ -1531,6 +1531,7 @@ mod tests {
                 ensemble_s: if median { 0.012 } else { 0.006 },
                 total_s: 1.9,
             },
+            monitors: Default::default(),
         })
     }
 

@@ -371,6 +371,7 @@ mod tests {
             q_counts: vec![10],
             bracket: None,
             times: StageTimes::default(),
+            monitors: Default::default(),
         })
     }
 

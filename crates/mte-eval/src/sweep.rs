@@ -135,6 +135,10 @@ pub struct SweepSpec {
     pub stream: ResetStream,
     /// Corruptions.
     pub corruptions: Vec<CorruptionEntry>,
+    /// Runtime monitors scoring every query of every episode (`["tide", "acc"]`); their
+    /// scores go into the records, thresholds come from calibration afterwards.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub monitors: Vec<mte_ensemble::MonitorKind>,
 }
 
 fn default_max_steps() -> usize {
@@ -573,6 +577,7 @@ impl TaskContext<'_> {
                 corruption: &c.corruption,
                 noise_seed: self.noise_seed,
                 sampling: Default::default(),
+                monitors: &self.spec.monitors,
             })
             .collect();
         let mut ran = 0;

@@ -91,6 +91,7 @@ fn spec<'a>(execution: Execution, corruption: &'a CorruptionSpec, h: usize) -> E
         corruption,
         noise_seed: 7,
         sampling: Default::default(),
+        monitors: &[],
     }
 }
 

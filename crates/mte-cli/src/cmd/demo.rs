@@ -52,6 +52,7 @@ pub fn run(cli: &Cli, a: &DemoArgs) -> Result<()> {
             phase: 0,
             schedules: Vec::new(),
         }],
+        monitors: Vec::new(),
     };
     spec.validate().context("check the demo flags")?;
     let t0 = std::time::Instant::now();

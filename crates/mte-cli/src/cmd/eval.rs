@@ -40,6 +40,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
             corruption: &CorruptionSpec::CLEAN,
             noise_seed: a.noise_seed,
             sampling: a.sampling.into(),
+            monitors: &[],
         };
         out.push(run_episode_observed(p.as_ref(), &spec, &mut spread)?);
         bar.advance(1);

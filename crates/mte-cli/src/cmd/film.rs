@@ -53,6 +53,7 @@ pub fn shoot(s: &Shoot<'_>) -> Result<[Film; 2]> {
             corruption: s.corruption,
             noise_seed: s.noise_seed,
             sampling: Default::default(),
+            monitors: &[],
         };
         Ok(film(p.as_ref(), &spec, s.size)?)
     };

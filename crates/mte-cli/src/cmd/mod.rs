@@ -6,6 +6,7 @@ pub mod demo;
 pub mod eval;
 pub mod film;
 pub mod media;
+pub mod monitor;
 pub mod replay;
 pub mod report;
 pub mod sim;

@@ -91,7 +91,9 @@ impl Tide {
             held: 0,
             newest: 0,
             sum: vec![0.0; d],
-            weights: (0..slots).map(|age| (-config.m * age as f64).exp()).collect(),
+            weights: (0..slots)
+                .map(|age| (-config.m * age as f64).exp())
+                .collect(),
         })
     }
 

@@ -605,6 +605,39 @@ pub enum AttackCommand {
     /// the patch's mean colour (evaluate it beside the patch: the patch's effect beyond it is
     /// its pattern's, not the occlusion's).
     Control(AttackControlArgs),
+    /// How aligned PGD's displacements are across the candidates covering a control time
+    /// (median pairwise cosine of attacked-minus-clean candidate rows, the clean twin drawn
+    /// with the executed chunk's noise): 1 is common-mode.
+    Alignment(AlignmentArgs),
+}
+
+/// `mte attack alignment`
+#[derive(Debug, Args)]
+pub struct AlignmentArgs {
+    /// Policy checkpoint directory.
+    #[arg(long, value_name = "DIR")]
+    pub policy: PathBuf,
+    /// Episodes (seeds 100000, ...).
+    #[arg(long, default_value_t = 10, value_parser = at_least_one)]
+    pub episodes: usize,
+    /// PGD iterations.
+    #[arg(long, default_value_t = 10, value_parser = at_least_one)]
+    pub iterations: usize,
+    /// L-infinity radius (pixels in [0, 1], or normalised keypoints).
+    #[arg(long, default_value_t = 0.03)]
+    pub eps: f64,
+    /// Burst length q (corrupted queries per M_min).
+    #[arg(long, default_value_t = 2, value_parser = at_least_one)]
+    pub q: usize,
+    /// Query stride h.
+    #[arg(long, default_value_t = 2, value_parser = at_least_one)]
+    pub stride: usize,
+    /// The arm that executes.
+    #[arg(long, default_value = "ewm:0.01", value_parser = arm)]
+    pub arm: String,
+    /// Step limit per episode.
+    #[arg(long, default_value_t = 300, value_parser = at_least_one)]
+    pub max_steps: usize,
 }
 
 /// `mte monitor ...`

@@ -24,6 +24,7 @@
 //! pixels of the 512 x 512 workspace), randomness always from an explicit seed.
 #![deny(missing_docs)]
 
+pub mod alignment;
 pub mod calibrate;
 pub mod corruption;
 pub mod dispersion;

@@ -129,3 +129,54 @@ q = [2]
     )?;
     same_records_every_way(&s, 9)
 }
+
+/// The alignment twin replays the executed chunk's sampling noise on the clean window: with
+/// a zero-radius PGD the attacked chunk is the clean one, so every displacement is exactly
+/// zero; with a real radius they are not.
+#[test]
+fn alignment_twins_share_the_executed_noise() -> TestResult {
+    use mte_eval::alignment::alignment;
+    use mte_eval::corruption::{CorruptionSpec, Fault, QueryAttack, Schedule};
+    use mte_eval::pusht::{EpisodeSpec, Execution};
+    use mte_eval::sweep::PolicySource as _;
+    let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/policies");
+    let policy = CheckpointSource.load(&assets.join("pusht_keypoints_cpu").to_string_lossy())?;
+    let corruption = |eps: f64| CorruptionSpec {
+        fault: Fault::Query(QueryAttack::Pgd(mte_policy::PgdConfig {
+            eps,
+            iterations: 2,
+            ..mte_policy::PgdConfig::default()
+        })),
+        schedule: Schedule::Burst {
+            q: 3,
+            period: None,
+            phase: 0,
+        },
+    };
+    let run = |c: &CorruptionSpec| {
+        let spec = EpisodeSpec {
+            needs: policy.needs(),
+            seed: 100_000,
+            stream: Default::default(),
+            h: 2,
+            max_steps: 40,
+            execution: Execution::OpenLoop,
+            corruption: c,
+            noise_seed: 0,
+            sampling: Default::default(),
+            monitors: &[],
+        };
+        alignment(policy.as_ref(), &[spec])
+    };
+    let zero = run(&corruption(0.0))?;
+    assert!(zero.attacked_queries > 0, "{zero:?}");
+    assert_eq!(zero.mean_norm, Some(0.0), "{zero:?}");
+    assert_eq!(zero.pairs, 0, "zero displacements have no direction: {zero:?}");
+    let real = run(&corruption(0.5))?;
+    assert_eq!(real.attacked_queries, zero.attacked_queries);
+    assert!(real.mean_norm.unwrap_or(0.0) > 0.0, "{real:?}");
+    assert!(real.pairs > 0, "{real:?}");
+    let m = real.median.ok_or("median")?;
+    assert!((-1.0..=1.0).contains(&m), "{real:?}");
+    Ok(())
+}

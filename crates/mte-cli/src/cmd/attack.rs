@@ -10,6 +10,61 @@ use mte_eval::sweep::{CheckpointSource, PolicySource as _};
 use crate::args::{CalibrateArgs, Cli, Format};
 use crate::progress::Bar;
 
+/// `mte attack alignment`
+pub fn alignment(cli: &Cli, a: &crate::args::AlignmentArgs) -> Result<()> {
+    use mte_eval::corruption::{CorruptionSpec, Fault, QueryAttack, Schedule};
+    use mte_eval::pusht::EpisodeSpec;
+    let policy = CheckpointSource
+        .load(&a.policy.to_string_lossy())
+        .with_context(|| format!("loading {}", a.policy.display()))?;
+    let corruption = CorruptionSpec {
+        fault: Fault::Query(QueryAttack::Pgd(mte_policy::PgdConfig {
+            eps: a.eps,
+            iterations: a.iterations,
+            ..mte_policy::PgdConfig::default()
+        })),
+        schedule: Schedule::Burst {
+            q: a.q,
+            period: None,
+            phase: 0,
+        },
+    };
+    let execution = a.arm.parse().context("--arm")?;
+    let specs: Vec<EpisodeSpec<'_>> = (0..a.episodes as u64)
+        .map(|i| EpisodeSpec {
+            needs: policy.needs(),
+            seed: 100_000 + i,
+            stream: Default::default(),
+            h: a.stride,
+            max_steps: a.max_steps,
+            execution,
+            corruption: &corruption,
+            noise_seed: 0,
+            sampling: Default::default(),
+            monitors: &[],
+        })
+        .collect();
+    let t0 = std::time::Instant::now();
+    let r = mte_eval::alignment::alignment(policy.as_ref(), &specs)?;
+    let secs = t0.elapsed().as_secs_f64();
+    let mut so = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(so, "{}", serde_json::json!({"alignment": r, "seconds": secs}))?,
+        Format::Text if !cli.quiet => writeln!(
+            so,
+            "{} episodes, {} attacked queries, {} candidate pairs: median cosine {}, quartiles {}, mean displacement {} ({secs:.0} s)",
+            r.episodes,
+            r.attacked_queries,
+            r.pairs,
+            r.median.map_or("-".into(), |v| format!("{v:.3}")),
+            r.quartiles.map_or("-".into(), |(l, h)| format!("[{l:.3}, {h:.3}]")),
+            r.mean_norm.map_or("-".into(), |v| format!("{v:.2}")),
+        )?,
+        Format::Text => {}
+    }
+    Ok(())
+}
+
 /// `mte attack calibrate`
 pub fn calibrate(cli: &Cli, a: &CalibrateArgs) -> Result<()> {
     ensure!(a.episodes >= 1, "--episodes must be at least 1");

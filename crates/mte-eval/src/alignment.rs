@@ -71,10 +71,15 @@ impl RngCore for Replay<'_> {
         w
     }
     fn fill_bytes(&mut self, dst: &mut [u8]) {
-        for chunk in dst.chunks_mut(8) {
-            let w = self.next_u64().to_le_bytes();
-            chunk.copy_from_slice(&w[..chunk.len()]);
-        }
+        fill_from_words(self, dst);
+    }
+}
+
+/// Bytes from whole words, little-endian (both streams here hand out words only).
+fn fill_from_words(rng: &mut impl RngCore, dst: &mut [u8]) {
+    for chunk in dst.chunks_mut(8) {
+        let w = rng.next_u64().to_le_bytes();
+        chunk.copy_from_slice(&w[..chunk.len()]);
     }
 }
 
@@ -94,10 +99,7 @@ impl RngCore for Recording<'_> {
         w
     }
     fn fill_bytes(&mut self, dst: &mut [u8]) {
-        for chunk in dst.chunks_mut(8) {
-            let w = self.next_u64().to_le_bytes();
-            chunk.copy_from_slice(&w[..chunk.len()]);
-        }
+        fill_from_words(self, dst);
     }
 }
 
@@ -118,9 +120,8 @@ impl AttackablePolicy for Twin<'_> {
             inner: sample_rng,
             words: Vec::new(),
         };
-        let attacked = mte_policy::attackable(self.inner)?.predict_chunk_attacked(
-            history, pgd, attack_rng, &mut rec,
-        )?;
+        let attacked = mte_policy::attackable(self.inner)?
+            .predict_chunk_attacked(history, pgd, attack_rng, &mut rec)?;
         let mut first = Replay {
             words: &rec.words,
             at: 0,
@@ -152,7 +153,13 @@ impl EpisodeObserver for Collect<'_, '_> {
         if !e.corrupted {
             return;
         }
-        if let Some(d) = self.twin.displacements.lock().ok().and_then(|mut q| q.pop_front()) {
+        if let Some(d) = self
+            .twin
+            .displacements
+            .lock()
+            .ok()
+            .and_then(|mut q| q.pop_front())
+        {
             self.attacked.push((e.t, d));
         }
     }
@@ -165,7 +172,10 @@ pub fn pair_cosines(attacked: &[(u64, Vec<f32>)], t_p: usize, t_o: usize, d: usi
         let age = tau.checked_sub(t)?;
         (age <= span).then(|| {
             let r = age as usize + t_o - 1;
-            c[r * d..(r + 1) * d].iter().map(|&v| f64::from(v)).collect()
+            c[r * d..(r + 1) * d]
+                .iter()
+                .map(|&v| f64::from(v))
+                .collect()
         })
     };
     let mut out = Vec::new();

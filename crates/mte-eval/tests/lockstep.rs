@@ -171,7 +171,10 @@ fn alignment_twins_share_the_executed_noise() -> TestResult {
     let zero = run(&corruption(0.0))?;
     assert!(zero.attacked_queries > 0, "{zero:?}");
     assert_eq!(zero.mean_norm, Some(0.0), "{zero:?}");
-    assert_eq!(zero.pairs, 0, "zero displacements have no direction: {zero:?}");
+    assert_eq!(
+        zero.pairs, 0,
+        "zero displacements have no direction: {zero:?}"
+    );
     let real = run(&corruption(0.5))?;
     assert_eq!(real.attacked_queries, zero.attacked_queries);
     assert!(real.mean_norm.unwrap_or(0.0) > 0.0, "{real:?}");

@@ -49,7 +49,11 @@ pub fn alignment(cli: &Cli, a: &crate::args::AlignmentArgs) -> Result<()> {
     let secs = t0.elapsed().as_secs_f64();
     let mut so = std::io::stdout().lock();
     match cli.format {
-        Format::Json => writeln!(so, "{}", serde_json::json!({"alignment": r, "seconds": secs}))?,
+        Format::Json => writeln!(
+            so,
+            "{}",
+            serde_json::json!({"alignment": r, "seconds": secs})
+        )?,
         Format::Text if !cli.quiet => writeln!(
             so,
             "{} episodes, {} attacked queries, {} candidate pairs: median cosine {}, quartiles {}, mean displacement {} ({secs:.0} s)",
@@ -57,7 +61,8 @@ pub fn alignment(cli: &Cli, a: &crate::args::AlignmentArgs) -> Result<()> {
             r.attacked_queries,
             r.pairs,
             r.median.map_or("-".into(), |v| format!("{v:.3}")),
-            r.quartiles.map_or("-".into(), |(l, h)| format!("[{l:.3}, {h:.3}]")),
+            r.quartiles
+                .map_or("-".into(), |(l, h)| format!("[{l:.3}, {h:.3}]")),
             r.mean_norm.map_or("-".into(), |v| format!("{v:.2}")),
         )?,
         Format::Text => {}

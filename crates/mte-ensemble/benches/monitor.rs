@@ -30,10 +30,10 @@ fn run(bencher: divan::Bencher, kind: MonitorKind, setup: (usize, usize, usize, 
                 .collect()
         })
         .collect();
-    // Warm the ring so every query is scored against a full history.
+    // Warm the ring so every query is scored against a full history (M_max chunks).
     let mut t = 0u64;
-    for c in &chunks {
-        m.observe(t, c).expect("observe");
+    for k in 0..g.m_max() + chunks.len() {
+        m.observe(t, &chunks[k % chunks.len()]).expect("observe");
         t += h as u64;
     }
     bencher.bench_local(|| {

@@ -8,7 +8,7 @@ use mte_ensemble::MonitorKind;
 use mte_ensemble::monitor::CalibrationRule;
 use mte_eval::monitoring::{Thresholds, calibrate_records, evaluate as evaluate_rows};
 use mte_eval::record::{EpisodeRecord, Line};
-use mte_eval::store::{read_lines, read_manifest};
+use mte_eval::store::load_runs;
 
 use crate::args::{Cli, Format, MonitorCalibrateArgs, MonitorEvaluateArgs};
 
@@ -18,24 +18,19 @@ type RunRecords = (
     BTreeMap<String, Vec<EpisodeRecord>>,
 );
 
-/// Every episode record of a run, by cell id.
+/// Every episode record of a run (read as `mte report` reads it), by cell id.
 fn records_by_cell(run: &std::path::Path) -> Result<RunRecords> {
-    let manifest = read_manifest(run).with_context(|| format!("reading {}", run.display()))?;
-    let mut out = BTreeMap::new();
-    for c in &manifest.cells {
-        let path = run.join("cells").join(format!("{}.jsonl", c.id));
-        let recs: Vec<EpisodeRecord> = if path.exists() {
-            read_lines(&path)?
-                .into_iter()
-                .filter_map(|l| match l {
-                    Line::Episode(e) => Some(e),
-                    Line::Error(_) => None,
-                })
-                .collect()
-        } else {
-            Vec::new()
-        };
-        out.insert(c.id.clone(), recs);
+    let (manifest, lines) =
+        load_runs(&[run.to_path_buf()]).with_context(|| format!("reading {}", run.display()))?;
+    let mut out: BTreeMap<String, Vec<EpisodeRecord>> = manifest
+        .cells
+        .iter()
+        .map(|c| (c.id.clone(), Vec::new()))
+        .collect();
+    for line in lines {
+        if let Line::Episode(e) = line {
+            out.entry(e.cell.clone()).or_default().push(e);
+        }
     }
     Ok((manifest.cells, out))
 }

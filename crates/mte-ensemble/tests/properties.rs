@@ -52,6 +52,22 @@ const ROUNDED_UNDER_SHIFT: [Aggregator; 4] = [
     Aggregator::GeometricMedian { max_iter: 300 },
 ];
 
+/// Why the geometric median is left out of the shift checks at `d = 1`: there, with an even
+/// count, every point between the two central values minimises the summed distance, and
+/// Weiszfeld's iteration stops wherever rounding leaves it in that flat set (measured: 209
+/// against 183 + 1 for four points shifted by -1). The shift moves the set of minimisers
+/// exactly, not the point the iteration picks, so only `d >= 2` (a unique minimiser unless
+/// the candidates are collinear) is checked point by point.
+#[test]
+fn flat_geometric_median() {
+    let rows = [0.0f32, 100.0, 300.0, 400.0];
+    let out = agg(Aggregator::GeometricMedian { max_iter: 300 }, &rows, 1)[0];
+    assert!(
+        (100.0..=300.0).contains(&out),
+        "{out} outside the minimising interval"
+    );
+}
+
 const TIES: [MedianTie; 4] = [
     MedianTie::Average,
     MedianTie::Lower,
@@ -90,6 +106,47 @@ proptest! {
                 let lo = col.clone().copied().fold(f32::INFINITY, f32::min);
                 let hi = col.copied().fold(f32::NEG_INFINITY, f32::max);
                 prop_assert!(lo <= *x && *x <= hi, "{tie:?}: {x} not in [{lo}, {hi}]");
+            }
+        }
+    }
+
+    /// Beyond the sorting networks (M > 32) the median selects in SIMD lanes: it must give
+    /// the sorted column's central values bit for bit, with ties, signed zeros and every row
+    /// width (d up to 20 covers padded strides 4 to 16 and the scalar fallback).
+    #[test]
+    fn large_set_median_equals_sorting_bit_for_bit(
+        n in 33usize..=110,
+        d in 1usize..=20,
+        seed in any::<u64>(),
+    ) {
+        let mut state = seed | 1;
+        let rows: Vec<f32> = (0..n * d)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                match state % 4 {
+                    0 => (state >> 40) as f32 / 1e3 - 8000.0,
+                    1 => ((state >> 60) as f32) - 8.0,
+                    2 => -0.0,
+                    _ => 0.0,
+                }
+            })
+            .collect();
+        for tie in TIES {
+            let out = agg(Aggregator::Median { tie }, &rows, d);
+            let skip = usize::from(tie == MedianTie::DropOldest && n % 2 == 0);
+            for (j, x) in out.iter().enumerate() {
+                let mut col: Vec<f32> = rows.iter().skip(skip * d + j).step_by(d).copied().collect();
+                col.sort_by(f32::total_cmp);
+                let m = col.len();
+                let (lo, hi) = (col[(m - 1) / 2], col[m / 2]);
+                let want = match tie {
+                    MedianTie::Lower => lo,
+                    MedianTie::Upper => hi,
+                    _ => ((lo as f64 + hi as f64) * 0.5) as f32,
+                };
+                prop_assert_eq!(x.to_bits(), want.to_bits(), "{:?} n {} d {} j {}", tie, n, d, j);
             }
         }
     }
@@ -160,6 +217,9 @@ proptest! {
             }
         }
         for a in ROUNDED_UNDER_SHIFT {
+            if d == 1 && matches!(a, Aggregator::GeometricMedian { .. }) {
+                continue; // see `flat_geometric_median`
+            }
             let (x, y) = (agg(a, &rows, d), agg(a, &moved, d));
             for (u, v) in x.iter().zip(&y) {
                 prop_assert!((u + b - v).abs() <= 1e-3, "{a}: {u} + {b} vs {v}");
@@ -260,6 +320,9 @@ proptest! {
             }
         }
         for a in ROUNDED_UNDER_SHIFT.into_iter().chain([Aggregator::RecencyMedian { m: 0.1 }]) {
+            if d == 1 && matches!(a, Aggregator::GeometricMedian { .. }) {
+                continue; // see `flat_geometric_median`
+            }
             let (x, y) = (run_stream(a, &chunks, d, b, false), run_stream(a, &chunks, d, b, true));
             for (u, v) in x.iter().zip(&y) {
                 prop_assert!((u + b - v).abs() <= 1e-3, "{a}: {u} + {b} vs {v}");

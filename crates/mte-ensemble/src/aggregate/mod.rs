@@ -8,6 +8,7 @@
 mod geometric;
 mod medoid;
 mod rank;
+mod select;
 mod weighted;
 
 use std::fmt;
@@ -123,6 +124,10 @@ pub struct Workspace {
     /// Row stride of `rows`: `dim` rounded up to 4 lanes.
     stride: usize,
     rows: Vec<f32>,
+    /// Order keys of `rows` for the lane-wise selection (`select`).
+    keys: Vec<i32>,
+    /// The lower and upper central values of one lane-wise selection, `2 * stride`.
+    central: Vec<f32>,
     col: Vec<f32>,
     pairs: Vec<(f32, f64)>,
     dist: Vec<f64>,
@@ -149,6 +154,8 @@ impl Workspace {
             dim,
             stride,
             rows: vec![0.0; capacity * stride],
+            keys: vec![0; capacity * stride],
+            central: vec![0.0; 2 * stride],
             col: vec![0.0; capacity],
             pairs: vec![(0.0, 0.0); capacity],
             dist: vec![0.0; capacity * capacity],

@@ -1,6 +1,6 @@
 //! Rank statistics: coordinate-wise median, trimmed mean, recency-weighted median.
 
-use super::{Candidates, MedianTie, Workspace};
+use super::{Candidates, MedianTie, Workspace, select};
 use crate::network;
 
 /// Midpoint of two finite f32 values without overflow.
@@ -29,7 +29,12 @@ fn central_pairs(
         let lower = if lo == hi {
             upper
         } else {
-            below.iter().copied().fold(f32::NEG_INFINITY, f32::max)
+            // The largest below in total order (`f32::max` may pick -0.0 over 0.0).
+            below
+                .iter()
+                .copied()
+                .max_by(f32::total_cmp)
+                .unwrap_or(upper)
         };
         emit(j, lower, upper);
     }
@@ -40,32 +45,43 @@ pub(super) fn median(c: &Candidates<'_>, tie: MedianTie, ws: &mut Workspace, out
     let n = c.len();
     let first = usize::from(tie == MedianTie::DropOldest && n.is_multiple_of(2));
     let (d, stride, m) = (c.dim(), c.stride(), n - first);
+    let values = &c.values()[first * stride..];
     if let Some(net) = ws.median_nets.get(m) {
         // Fast path: sort all coordinates at once with the network, then read the central
         // rows.
         let rows = &mut ws.rows[..m * stride];
-        rows.copy_from_slice(&c.values()[first * stride..]);
+        rows.copy_from_slice(values);
         network::apply_rows(net, rows, stride);
         let lo = &rows[(m - 1) / 2 * stride..][..d];
         let hi = &rows[m / 2 * stride..][..d];
-        match tie {
-            MedianTie::Average | MedianTie::DropOldest => {
-                for ((o, &a), &b) in out.iter_mut().zip(lo).zip(hi) {
-                    *o = midpoint(a, b);
-                }
-            }
-            MedianTie::Lower => out.copy_from_slice(lo),
-            MedianTie::Upper => out.copy_from_slice(hi),
-        }
-        return;
+        write_median(tie, lo, hi, out);
+    } else if select::supported(stride) {
+        // Beyond the networks: select in SIMD lanes, all coordinates at once.
+        let (lower, upper) = ws.central.split_at_mut(stride);
+        select::central_pairs_lanes(values, stride, &mut ws.keys, lower, upper);
+        write_median(tie, &lower[..d], &upper[..d], out);
+    } else {
+        central_pairs(c, first, ws, |j, lo, hi| {
+            out[j] = match tie {
+                MedianTie::Average | MedianTie::DropOldest => midpoint(lo, hi),
+                MedianTie::Lower => lo,
+                MedianTie::Upper => hi,
+            };
+        });
     }
-    central_pairs(c, first, ws, |j, lo, hi| {
-        out[j] = match tie {
-            MedianTie::Average | MedianTie::DropOldest => midpoint(lo, hi),
-            MedianTie::Lower => lo,
-            MedianTie::Upper => hi,
-        };
-    });
+}
+
+/// The median from the central pair of every coordinate, by the tie rule.
+fn write_median(tie: MedianTie, lo: &[f32], hi: &[f32], out: &mut [f32]) {
+    match tie {
+        MedianTie::Average | MedianTie::DropOldest => {
+            for ((o, &a), &b) in out.iter_mut().zip(lo).zip(hi) {
+                *o = midpoint(a, b);
+            }
+        }
+        MedianTie::Lower => out.copy_from_slice(lo),
+        MedianTie::Upper => out.copy_from_slice(hi),
+    }
 }
 
 /// Per coordinate: sort, drop `min(k, (n - 1) / 2)` values from each end, average the rest.

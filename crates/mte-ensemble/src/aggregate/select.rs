@@ -1,0 +1,473 @@
+//! Exact order statistics of every coordinate at once, for candidate sets beyond the sorting
+//! networks (ACT's `M = 100`).
+//!
+//! Each row of the padded candidate matrix is `S` coordinates wide (`S` in 4, 8, 12, 16), so
+//! the coordinates sit in SIMD lanes. The values are mapped to unsigned keys whose integer
+//! order is [`f32::total_cmp`]'s order, and the `k`-th smallest key of every lane is built
+//! bit by bit from the top (a radix select): at each bit, one pass over the rows counts, per
+//! lane, the keys below the candidate prefix. That is 32 branch-free compare-and-count passes
+//! over `M` rows, whatever the data, in the lanes the CPU has (AVX-512, AVX2, NEON or the
+//! baseline, chosen at run time). The result is the same value `select_nth_unstable_by`
+//! with `total_cmp` returns, bit for bit.
+
+/// Maps `x` to a key whose unsigned order is the order of [`f32::total_cmp`].
+#[inline(always)]
+fn key(x: f32) -> u32 {
+    let b = x.to_bits();
+    // Negative values: flip every bit; others: set the sign bit.
+    b ^ ((((b as i32) >> 31) as u32) | 0x8000_0000)
+}
+
+/// Inverse of [`key`].
+#[inline(always)]
+fn unkey(k: u32) -> f32 {
+    f32::from_bits(k ^ (((!k as i32 >> 31) as u32) | 0x8000_0000))
+}
+
+/// Row widths served by [`central_pairs_lanes`].
+pub(super) fn supported(stride: usize) -> bool {
+    matches!(stride, 4 | 8 | 12 | 16)
+}
+
+/// The order statistics of ranks `(n - 1) / 2` and `n / 2` (0-based) of every lane of the
+/// `n = values.len() / stride` rows, written to `lower[..stride]` and `upper[..stride]`.
+/// `keys` is scratch of at least `values.len()`. The stride must be [`supported`].
+pub(super) fn central_pairs_lanes(
+    values: &[f32],
+    stride: usize,
+    keys: &mut [i32],
+    lower: &mut [f32],
+    upper: &mut [f32],
+) {
+    match stride {
+        4 => central::<4>(values, keys, lower, upper),
+        8 => central::<8>(values, keys, lower, upper),
+        12 => central::<12>(values, keys, lower, upper),
+        _ => central::<16>(values, keys, lower, upper),
+    }
+}
+
+/// Maps `x` to an `i32` whose signed order is the order of [`f32::total_cmp`] (signed
+/// compares are what every SIMD level has).
+#[inline(always)]
+fn signed_key(x: f32) -> i32 {
+    (key(x) ^ 0x8000_0000) as i32
+}
+
+/// Inverse of [`signed_key`].
+#[inline(always)]
+fn unsigned_key(k: i32) -> u32 {
+    k as u32 ^ 0x8000_0000
+}
+
+fn central<const S: usize>(values: &[f32], keys: &mut [i32], lower: &mut [f32], upper: &mut [f32]) {
+    let (rows, _) = values.as_chunks::<S>();
+    let n = rows.len();
+    let (keys, _) = keys[..n * S].as_chunks_mut::<S>();
+    for (k, row) in keys.iter_mut().zip(rows) {
+        for l in 0..S {
+            k[l] = signed_key(row[l]);
+        }
+    }
+    let (lo, hi) = ((n - 1) / 2, n / 2);
+    let below = (lo != hi).then_some(lo as u32);
+    let (top, bottom) = select_dispatch::<S>(keys, hi as u32, below);
+    for l in 0..S {
+        upper[l] = unkey(top[l]);
+        lower[l] = unkey(bottom[l]);
+    }
+}
+
+/// The `u32` keys of rank `rank` (0-based) in every lane of the signed-key rows, and of rank
+/// `lower` when given (else the same keys again), on the best SIMD level the CPU has.
+fn select_dispatch<const S: usize>(
+    keys: &[[i32; S]],
+    rank: u32,
+    lower: Option<u32>,
+) -> ([u32; S], [u32; S]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if let Some(out) = simd::select(keys, rank, lower) {
+            return out;
+        }
+    }
+    select_scalar(keys, rank, lower)
+}
+
+/// The portable selection: a bit of the key is set when at most `rank` keys lie below the
+/// prefix with it set. The rank just below is then the largest key below the result when
+/// `rank` keys lie below it, else the result itself (a tie across the centre).
+fn select_scalar<const S: usize>(
+    keys: &[[i32; S]],
+    rank: u32,
+    lower: Option<u32>,
+) -> ([u32; S], [u32; S]) {
+    let mut prefix = [0u32; S];
+    for bit in (0..32).rev() {
+        for l in 0..S {
+            let trial = prefix[l] | 1 << bit;
+            let t = (trial ^ 0x8000_0000) as i32;
+            let count = keys.iter().filter(|k| k[l] < t).count();
+            if count as u32 <= rank {
+                prefix[l] = trial;
+            }
+        }
+    }
+    let mut bottom = prefix;
+    if let Some(lo) = lower {
+        for l in 0..S {
+            let t = (prefix[l] ^ 0x8000_0000) as i32;
+            let below = keys.iter().map(|k| k[l]).filter(|&k| k < t);
+            if below.clone().count() as u32 > lo {
+                let largest = below.max().unwrap_or(i32::MIN);
+                bottom[l] = unsigned_key(largest);
+            }
+        }
+    }
+    (prefix, bottom)
+}
+
+/// The counting passes in explicit SIMD (x86_64): AVX-512 when a row is 16 lanes, AVX2 when
+/// it is a multiple of 8, SSE2 (every x86_64 CPU) otherwise. The compiler, left to itself,
+/// vectorises across rows with gathers, which is slower than scalar code.
+///
+/// Each kernel finds the key of rank `rank` by 32 counting passes, then, when asked, the key
+/// of rank `lower` by one more pass that counts the keys below it and keeps their maximum.
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod simd {
+    use std::arch::x86_64::*;
+
+    type Pair<const S: usize> = ([u32; S], [u32; S]);
+
+    /// A SIMD level of the kernels.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub(super) enum Level {
+        Avx512,
+        Avx2,
+        Sse2,
+    }
+
+    impl Level {
+        /// Whether this CPU runs the level's kernel for rows of `s` lanes.
+        pub(super) fn serves(self, s: usize) -> bool {
+            match self {
+                Self::Avx512 => s == 16 && std::arch::is_x86_feature_detected!("avx512f"),
+                Self::Avx2 => {
+                    s.is_multiple_of(8) && s <= 16 && std::arch::is_x86_feature_detected!("avx2")
+                }
+                Self::Sse2 => s.is_multiple_of(4) && s <= 16,
+            }
+        }
+    }
+
+    /// The selection on the best level this CPU has; `None` when the row width has no SIMD
+    /// path (never for the widths of [`super::supported`]).
+    pub(super) fn select<const S: usize>(
+        keys: &[[i32; S]],
+        rank: u32,
+        lower: Option<u32>,
+    ) -> Option<Pair<S>> {
+        let level = [Level::Avx512, Level::Avx2, Level::Sse2]
+            .into_iter()
+            .find(|l| l.serves(S))?;
+        Some(select_on(level, keys, rank, lower))
+    }
+
+    /// The selection on `level`, which must [`Level::serves`] rows of `S` lanes.
+    pub(super) fn select_on<const S: usize>(
+        level: Level,
+        keys: &[[i32; S]],
+        rank: u32,
+        lower: Option<u32>,
+    ) -> Pair<S> {
+        assert!(level.serves(S), "{level:?} cannot serve rows of {S} lanes");
+        let (mut top, mut bottom) = ([0u32; S], [0u32; S]);
+        let flat = keys.as_flattened();
+        let lo = lower.map_or(-1, |l| l as i32);
+        match level {
+            // SAFETY (all three): `serves` checked that the CPU has the level's features and
+            // that the row width fits the kernel.
+            Level::Avx512 => unsafe { select_avx512(flat, rank, lo, &mut top, &mut bottom) },
+            Level::Avx2 => unsafe { select_avx2(flat, S, rank, lo, &mut top, &mut bottom) },
+            Level::Sse2 => unsafe { select_sse2(flat, S, rank, lo, &mut top, &mut bottom) },
+        }
+        if lower.is_none() {
+            bottom = top;
+        }
+        (top, bottom)
+    }
+
+    /// Rows of 16 lanes in one AVX-512 register each.
+    #[target_feature(enable = "avx512f")]
+    fn select_avx512(keys: &[i32], rank: u32, lo: i32, top: &mut [u32], bottom: &mut [u32]) {
+        let sign = _mm512_set1_epi32(i32::MIN);
+        let one = _mm512_set1_epi32(1);
+        let limit = _mm512_set1_epi32(rank as i32);
+        let mut prefix = _mm512_setzero_si512();
+        for bit in (0..32).rev() {
+            let trial = _mm512_or_si512(prefix, _mm512_set1_epi32((1u32 << bit) as i32));
+            let t = _mm512_xor_si512(trial, sign);
+            // Four independent counters, so the adds do not wait on each other.
+            let mut c = [_mm512_setzero_si512(); 4];
+            let blocks = keys.chunks_exact(64);
+            let rest = blocks.remainder();
+            for block in blocks {
+                for (j, cj) in c.iter_mut().enumerate() {
+                    // SAFETY: `block` holds 64 readable i32; the load is unaligned.
+                    let k = unsafe { _mm512_loadu_si512(block[16 * j..].as_ptr().cast()) };
+                    *cj = _mm512_mask_add_epi32(*cj, _mm512_cmplt_epi32_mask(k, t), *cj, one);
+                }
+            }
+            for row in rest.chunks_exact(16) {
+                // SAFETY: `row` holds 16 readable i32; the load is unaligned.
+                let k = unsafe { _mm512_loadu_si512(row.as_ptr().cast()) };
+                c[0] = _mm512_mask_add_epi32(c[0], _mm512_cmplt_epi32_mask(k, t), c[0], one);
+            }
+            let count =
+                _mm512_add_epi32(_mm512_add_epi32(c[0], c[1]), _mm512_add_epi32(c[2], c[3]));
+            prefix = _mm512_mask_mov_epi32(prefix, _mm512_cmple_epi32_mask(count, limit), trial);
+        }
+        let t = _mm512_xor_si512(prefix, sign);
+        let (mut count, mut largest) = (_mm512_setzero_si512(), sign);
+        for row in keys.chunks_exact(16) {
+            // SAFETY: as above.
+            let k = unsafe { _mm512_loadu_si512(row.as_ptr().cast()) };
+            let m = _mm512_cmplt_epi32_mask(k, t);
+            count = _mm512_mask_add_epi32(count, m, count, one);
+            largest = _mm512_mask_max_epi32(largest, m, largest, k);
+        }
+        let use_largest = _mm512_cmpgt_epi32_mask(count, _mm512_set1_epi32(lo));
+        let low = _mm512_mask_mov_epi32(prefix, use_largest, _mm512_xor_si512(largest, sign));
+        // SAFETY: `top` and `bottom` hold 16 writable u32.
+        unsafe {
+            _mm512_storeu_si512(top.as_mut_ptr().cast(), prefix);
+            _mm512_storeu_si512(bottom.as_mut_ptr().cast(), low);
+        }
+    }
+
+    /// Rows of `s` lanes, a multiple of 8 up to 16, in AVX2 registers.
+    #[target_feature(enable = "avx2")]
+    fn select_avx2(
+        keys: &[i32],
+        s: usize,
+        rank: u32,
+        lo: i32,
+        top: &mut [u32],
+        bottom: &mut [u32],
+    ) {
+        let v = s / 8;
+        let sign = _mm256_set1_epi32(i32::MIN);
+        let limit = _mm256_set1_epi32(rank as i32 + 1);
+        let mut prefix = [_mm256_setzero_si256(); 2];
+        for bit in (0..32).rev() {
+            let b = _mm256_set1_epi32((1u32 << bit) as i32);
+            let mut t = [_mm256_setzero_si256(); 2];
+            for (ti, p) in t.iter_mut().zip(&prefix).take(v) {
+                *ti = _mm256_xor_si256(_mm256_or_si256(*p, b), sign);
+            }
+            // Two rows per iteration, so the adds of one lane do not wait on each other.
+            let mut c = [[_mm256_setzero_si256(); 2]; 2];
+            let pairs = keys.chunks_exact(2 * s);
+            let rest = pairs.remainder();
+            for pair in pairs {
+                for (r, cr) in c.iter_mut().enumerate() {
+                    for j in 0..v {
+                        // SAFETY: `pair` holds `2 s` readable i32; the load is unaligned.
+                        let k =
+                            unsafe { _mm256_loadu_si256(pair[r * s + 8 * j..].as_ptr().cast()) };
+                        cr[j] = _mm256_sub_epi32(cr[j], _mm256_cmpgt_epi32(t[j], k));
+                    }
+                }
+            }
+            for j in 0..v.min(rest.len() / 8) {
+                // SAFETY: `rest` holds one row of `8 v` readable i32.
+                let k = unsafe { _mm256_loadu_si256(rest[8 * j..].as_ptr().cast()) };
+                c[0][j] = _mm256_sub_epi32(c[0][j], _mm256_cmpgt_epi32(t[j], k));
+            }
+            for j in 0..v {
+                let count = _mm256_add_epi32(c[0][j], c[1][j]);
+                let keep = _mm256_cmpgt_epi32(limit, count);
+                prefix[j] = _mm256_or_si256(prefix[j], _mm256_and_si256(keep, b));
+            }
+        }
+        let lo = _mm256_set1_epi32(lo);
+        for j in 0..v {
+            let t = _mm256_xor_si256(prefix[j], sign);
+            let (mut count, mut largest) = (_mm256_setzero_si256(), sign);
+            for row in keys.chunks_exact(s) {
+                // SAFETY: as above.
+                let k = unsafe { _mm256_loadu_si256(row[8 * j..].as_ptr().cast()) };
+                let m = _mm256_cmpgt_epi32(t, k);
+                count = _mm256_sub_epi32(count, m);
+                largest = _mm256_max_epi32(largest, _mm256_blendv_epi8(sign, k, m));
+            }
+            let use_largest = _mm256_cmpgt_epi32(count, lo);
+            let low = _mm256_blendv_epi8(prefix[j], _mm256_xor_si256(largest, sign), use_largest);
+            // SAFETY: `top` and `bottom` hold `s = 8 v` writable u32.
+            unsafe {
+                _mm256_storeu_si256(top[8 * j..].as_mut_ptr().cast(), prefix[j]);
+                _mm256_storeu_si256(bottom[8 * j..].as_mut_ptr().cast(), low);
+            }
+        }
+    }
+
+    /// `m ? a : b` lane by lane (`m` all ones or all zeros per lane), in SSE2.
+    #[target_feature(enable = "sse2")]
+    fn select_lanes(m: __m128i, a: __m128i, b: __m128i) -> __m128i {
+        _mm_or_si128(_mm_and_si128(m, a), _mm_andnot_si128(m, b))
+    }
+
+    /// Rows of `s` lanes, a multiple of 4 up to 16, in SSE2 registers.
+    #[target_feature(enable = "sse2")]
+    fn select_sse2(
+        keys: &[i32],
+        s: usize,
+        rank: u32,
+        lo: i32,
+        top: &mut [u32],
+        bottom: &mut [u32],
+    ) {
+        let v = s / 4;
+        let sign = _mm_set1_epi32(i32::MIN);
+        let limit = _mm_set1_epi32(rank as i32 + 1);
+        let mut prefix = [_mm_setzero_si128(); 4];
+        for bit in (0..32).rev() {
+            let b = _mm_set1_epi32((1u32 << bit) as i32);
+            let mut t = [_mm_setzero_si128(); 4];
+            for (ti, p) in t.iter_mut().zip(&prefix).take(v) {
+                *ti = _mm_xor_si128(_mm_or_si128(*p, b), sign);
+            }
+            let mut count = [_mm_setzero_si128(); 4];
+            for row in keys.chunks_exact(s) {
+                for j in 0..v {
+                    // SAFETY: `row` holds `4 v` readable i32; the load is unaligned.
+                    let k = unsafe { _mm_loadu_si128(row[4 * j..].as_ptr().cast()) };
+                    count[j] = _mm_sub_epi32(count[j], _mm_cmpgt_epi32(t[j], k));
+                }
+            }
+            for j in 0..v {
+                let keep = _mm_cmpgt_epi32(limit, count[j]);
+                prefix[j] = _mm_or_si128(prefix[j], _mm_and_si128(keep, b));
+            }
+        }
+        let lo = _mm_set1_epi32(lo);
+        for j in 0..v {
+            let t = _mm_xor_si128(prefix[j], sign);
+            let (mut count, mut largest) = (_mm_setzero_si128(), sign);
+            for row in keys.chunks_exact(s) {
+                // SAFETY: as above.
+                let k = unsafe { _mm_loadu_si128(row[4 * j..].as_ptr().cast()) };
+                let m = _mm_cmpgt_epi32(t, k);
+                count = _mm_sub_epi32(count, m);
+                let candidate = select_lanes(m, k, sign);
+                largest = select_lanes(_mm_cmpgt_epi32(candidate, largest), candidate, largest);
+            }
+            let use_largest = _mm_cmpgt_epi32(count, lo);
+            let low = select_lanes(use_largest, _mm_xor_si128(largest, sign), prefix[j]);
+            // SAFETY: `top` and `bottom` hold `s = 4 v` writable u32.
+            unsafe {
+                _mm_storeu_si128(top[4 * j..].as_mut_ptr().cast(), prefix[j]);
+                _mm_storeu_si128(bottom[4 * j..].as_mut_ptr().cast(), low);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_preserve_total_order_and_invert() {
+        let xs = [
+            f32::NEG_INFINITY,
+            -3.4e38,
+            -1.0,
+            -1e-40,
+            -0.0,
+            0.0,
+            1e-40,
+            1.0,
+            3.4e38,
+            f32::INFINITY,
+        ];
+        for w in xs.windows(2) {
+            assert_eq!(w[0].total_cmp(&w[1]), key(w[0]).cmp(&key(w[1])), "{w:?}");
+        }
+        for &x in &xs {
+            assert_eq!(unkey(key(x)).to_bits(), x.to_bits());
+        }
+    }
+
+    /// Every SIMD level this CPU has, at every row width it serves, gives the portable
+    /// selection's keys bit for bit (random keys with many ties, odd and even counts).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn every_simd_level_matches_the_portable_selection() {
+        fn check<const S: usize>(state: &mut u64) -> usize {
+            let mut checked = 0;
+            for n in [1usize, 2, 3, 5, 8, 33, 64, 99, 100, 131] {
+                let keys: Vec<[i32; S]> = (0..n)
+                    .map(|_| {
+                        std::array::from_fn(|_| {
+                            *state ^= *state << 13;
+                            *state ^= *state >> 7;
+                            *state ^= *state << 17;
+                            match *state % 3 {
+                                0 => (*state >> 32) as i32,
+                                1 => ((*state >> 59) as i32) - 16,
+                                _ => i32::MIN + (*state >> 62) as i32,
+                            }
+                        })
+                    })
+                    .collect();
+                let (lo, hi) = (((n - 1) / 2) as u32, (n / 2) as u32);
+                let want = select_scalar(&keys, hi, Some(lo));
+                for level in [simd::Level::Avx512, simd::Level::Avx2, simd::Level::Sse2] {
+                    if level.serves(S) {
+                        let got = simd::select_on(level, &keys, hi, Some(lo));
+                        assert_eq!(got, want, "{level:?} S {S} n {n}");
+                        checked += 1;
+                    }
+                }
+            }
+            checked
+        }
+        let mut state = 0x2545_F491_4F6C_DD1Du64;
+        let checked = check::<4>(&mut state)
+            + check::<8>(&mut state)
+            + check::<12>(&mut state)
+            + check::<16>(&mut state);
+        // SSE2 serves every width on every x86_64 CPU.
+        assert!(checked >= 40, "only {checked} kernel runs checked");
+    }
+
+    #[test]
+    fn lanes_match_selection_with_ties_and_signed_zeros() {
+        // 5 rows x 4 lanes, odd and even counts, ties, and -0.0 beside 0.0.
+        let cols: [[f32; 6]; 4] = [
+            [3.0, 1.0, 2.0, 5.0, 4.0, 0.5],
+            [1.0, 1.0, 1.0, 2.0, 2.0, 2.0],
+            [-0.0, 0.0, -0.0, 0.0, 7.0, -7.0],
+            [-1.0, -2.0, -3.0, -1.0, -2.0, -3.0],
+        ];
+        for n in 1..=6 {
+            let mut values = vec![0.0; n * 4];
+            for (l, col) in cols.iter().enumerate() {
+                for i in 0..n {
+                    values[i * 4 + l] = col[i];
+                }
+            }
+            let (mut lower, mut upper, mut keys) = ([0.0; 4], [0.0; 4], vec![0i32; n * 4]);
+            central_pairs_lanes(&values, 4, &mut keys, &mut lower, &mut upper);
+            for (l, col) in cols.iter().enumerate() {
+                let mut sorted = col[..n].to_vec();
+                sorted.sort_by(f32::total_cmp);
+                let (lo, hi) = ((n - 1) / 2, n / 2);
+                assert_eq!(lower[l].to_bits(), sorted[lo].to_bits(), "n {n} lane {l}");
+                assert_eq!(upper[l].to_bits(), sorted[hi].to_bits(), "n {n} lane {l}");
+            }
+        }
+    }
+}

@@ -601,9 +601,9 @@ pub enum AttackCommand {
     /// Train a physical patch against an image policy on demonstration windows (writes
     /// patch.png + patch.json; evaluate it with `fault = { kind = "patch", path = ... }`).
     Patch(AttackPatchArgs),
-    /// Make the control of a trained patch: the same square at the same place, filled with
-    /// the patch's mean colour (evaluate it beside the patch: the patch's effect beyond it is
-    /// its pattern's, not the occlusion's).
+    /// Make a control of a trained patch: the same square at the same place, filled with the
+    /// patch's mean colour, mid-grey or seeded noise (evaluate it beside the patch: the
+    /// patch's effect beyond it is its pattern's, not the occlusion's).
     Control(AttackControlArgs),
     /// How aligned PGD's displacements are across the candidates covering a control time
     /// (median pairwise cosine of attacked-minus-clean candidate rows, the clean twin drawn
@@ -701,6 +701,33 @@ pub struct AttackControlArgs {
     /// Where to write the control patch directory.
     #[arg(long, short, value_name = "DIR")]
     pub out: PathBuf,
+    /// What fills the square.
+    #[arg(long, value_enum, default_value_t = ControlArg::MeanColour)]
+    pub kind: ControlArg,
+    /// Seed of the noise control.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+/// The control texture of `mte attack control`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ControlArg {
+    /// The patch's mean colour.
+    MeanColour,
+    /// Mid-grey (128, 128, 128).
+    Grey,
+    /// Uniform random bytes (seeded).
+    Noise,
+}
+
+/// Where patch training places the texture.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum PlacementArg {
+    /// Every batch at `--center`.
+    Fixed,
+    /// Each batch at a position drawn uniformly inside the policy's evaluation crop, the
+    /// texture's centre at least `--min-goal-distance` from the goal's centre.
+    AwayFromGoal,
 }
 
 /// Patch ascent rule.
@@ -724,9 +751,17 @@ pub struct AttackPatchArgs {
     /// Texture side (observation px).
     #[arg(long, default_value_t = 16)]
     pub side: usize,
-    /// Centre in world px (512 x 512), "x,y".
-    #[arg(long, default_value = "256,256", value_parser = world_point)]
+    /// Centre in world px (512 x 512), "x,y": where the patch is evaluated (and trained, with
+    /// `--placement fixed`). The default lies away from the goal, inside the camera crop.
+    #[arg(long, default_value = "112,112", value_parser = world_point)]
     pub center: [f64; 2],
+    /// Where training places the texture in each batch.
+    #[arg(long, value_enum, default_value_t = PlacementArg::AwayFromGoal)]
+    pub placement: PlacementArg,
+    /// Least distance of the texture's centre from the goal's centre (world px) under
+    /// `--placement away-from-goal`.
+    #[arg(long, default_value_t = 150.0)]
+    pub min_goal_distance: f64,
     /// Epochs (the protocol: 11).
     #[arg(long, default_value_t = 11)]
     pub epochs: usize,

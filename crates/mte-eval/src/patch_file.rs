@@ -6,7 +6,7 @@ use std::fs;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
-use mte_policy::patch::{Ascent, PatchConfig, PatchReport};
+use mte_policy::patch::{Ascent, PatchConfig, PatchReport, Placement};
 use mte_sim::Patch;
 use serde::{Deserialize, Serialize};
 
@@ -58,8 +58,16 @@ pub struct PatchMeta {
     pub side: usize,
     /// Centre (world px, 512 x 512 canvas, y down).
     pub center: [f64; 2],
-    /// Top-left pixel in the policy's frame at training time.
+    /// Top-left pixel in the policy's frame at evaluation (and at training, when fixed).
     pub origin: [usize; 2],
+    /// Where training placed the texture in each batch (absent in files written before
+    /// placements existed: fixed at `origin`).
+    #[serde(default = "fixed_placement")]
+    pub placement: Placement,
+    /// What the texture is: trained, or a control made from a trained patch (absent in
+    /// older files: trained, or the mean-colour control when `epochs` is 0).
+    #[serde(default)]
+    pub control: Option<ControlKind>,
     /// Frame (width, height) it was trained for.
     pub frame: [usize; 2],
     /// Ascent rule.
@@ -96,6 +104,8 @@ impl PatchMeta {
             side: report.side,
             center,
             origin: [report.origin.0, report.origin.1],
+            placement: cfg.placement.clone(),
+            control: None,
             frame,
             ascent: cfg.ascent,
             step: cfg.step,
@@ -187,31 +197,83 @@ pub fn load(dir: &Path) -> Result<(PatchMeta, Patch), PatchFileError> {
     Ok((meta, patch))
 }
 
-/// Writes into `dst` the control of the patch in `src`: a square of the same size at the
-/// same world position, filled uniformly with the patch's mean colour (per channel, rounded).
-/// It occludes the same area with the same mean intensity, so the adversarial patch's effect
-/// beyond it is the effect of its pattern. The metadata is the source's with `epochs = 0`,
-/// `step = 0` and no loss curve. Returns the control's metadata.
-pub fn mean_colour_control(src: &Path, dst: &Path) -> Result<PatchMeta, PatchFileError> {
+fn fixed_placement() -> Placement {
+    Placement::Fixed
+}
+
+/// The controls of a trained patch: the same square at the same world position, so that the
+/// adversarial patch's effect beyond a control is the effect of its pattern, not of the
+/// occlusion.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ControlKind {
+    /// Filled with the patch's mean colour (per channel, rounded): the same area and mean
+    /// intensity.
+    MeanColour,
+    /// Mid-grey (128, 128, 128): the texture patch training starts from.
+    Grey,
+    /// Independent uniform random bytes per pixel and channel (seeded): a textured square
+    /// with no optimisation behind it.
+    Noise {
+        /// Seed of the noise.
+        seed: u64,
+    },
+}
+
+impl std::fmt::Display for ControlKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::MeanColour => f.write_str("mean-colour"),
+            Self::Grey => f.write_str("grey"),
+            Self::Noise { seed } => write!(f, "noise (seed {seed})"),
+        }
+    }
+}
+
+/// The control texture of `kind` for `rgb` (RGB u8, row-major).
+pub fn control_texture(rgb: &[u8], kind: ControlKind) -> Vec<u8> {
+    match kind {
+        ControlKind::MeanColour => {
+            let n = (rgb.len() / 3).max(1) as f64;
+            let mean: Vec<u8> = (0..3)
+                .map(|c| {
+                    let sum: f64 = rgb.iter().skip(c).step_by(3).map(|&v| f64::from(v)).sum();
+                    (sum / n).round().clamp(0.0, 255.0) as u8
+                })
+                .collect();
+            (0..rgb.len()).map(|i| mean[i % 3]).collect()
+        }
+        ControlKind::Grey => vec![128; rgb.len()],
+        ControlKind::Noise { seed } => {
+            use rand::{RngCore, SeedableRng};
+            let mut out = vec![0; rgb.len()];
+            rand_chacha::ChaCha8Rng::seed_from_u64(seed).fill_bytes(&mut out);
+            out
+        }
+    }
+}
+
+/// Writes into `dst` the `kind` control of the patch in `src` (see [`ControlKind`]). The
+/// metadata is the source's with `epochs = 0`, `step = 0`, no loss curve and `control` set.
+/// Returns the control's metadata.
+pub fn control(src: &Path, dst: &Path, kind: ControlKind) -> Result<PatchMeta, PatchFileError> {
     let (meta, patch) = load(src)?;
-    let rgb = patch.rgb();
-    let n = (rgb.len() / 3).max(1) as f64;
-    let mean: Vec<u8> = (0..3)
-        .map(|c| {
-            let sum: f64 = rgb.iter().skip(c).step_by(3).map(|&v| f64::from(v)).sum();
-            (sum / n).round().clamp(0.0, 255.0) as u8
-        })
-        .collect();
-    let flat: Vec<u8> = (0..rgb.len()).map(|i| mean[i % 3]).collect();
+    let texture = control_texture(patch.rgb(), kind);
     let control = PatchMeta {
         step: 0.0,
         epochs: 0,
         initial_loss: 0.0,
         epoch_loss: Vec::new(),
+        control: Some(kind),
         ..meta
     };
-    save(dst, &control, &flat)?;
+    save(dst, &control, &texture)?;
     Ok(control)
+}
+
+/// [`control`] with [`ControlKind::MeanColour`].
+pub fn mean_colour_control(src: &Path, dst: &Path) -> Result<PatchMeta, PatchFileError> {
+    control(src, dst, ControlKind::MeanColour)
 }
 
 #[cfg(test)]
@@ -256,6 +318,86 @@ mod tests {
             &p.rgb()[..6]
         );
         assert!(mean_colour_control(Path::new("no/such/patch"), b.path()).is_err());
+    }
+
+    #[test]
+    fn grey_and_noise_controls_keep_size_and_place() {
+        let (a, b, c) = (
+            tempfile::tempdir().expect("tmp"),
+            tempfile::tempdir().expect("tmp"),
+            tempfile::tempdir().expect("tmp"),
+        );
+        let report = PatchReport {
+            texture: vec![0.9; 3 * 8 * 8],
+            side: 8,
+            origin: (5, 6),
+            initial_loss: 0.1,
+            epoch_loss: vec![0.2],
+        };
+        let meta = PatchMeta::new(
+            &PatchConfig::default(),
+            &report,
+            [90.0, 400.0],
+            [96, 96],
+            Path::new("ck"),
+        );
+        save(a.path(), &meta, &report.rgb_u8()).expect("save");
+        let grey = control(a.path(), b.path(), ControlKind::Grey).expect("grey");
+        let (m, p) = load(b.path()).expect("load grey");
+        assert_eq!(
+            (m.side, m.center, m.control),
+            (8, [90.0, 400.0], Some(ControlKind::Grey))
+        );
+        assert_eq!(grey, m);
+        assert!(p.rgb().iter().all(|&v| v == 128));
+        let noise = ControlKind::Noise { seed: 3 };
+        control(a.path(), c.path(), noise).expect("noise");
+        let (m, p) = load(c.path()).expect("load noise");
+        assert_eq!((m.origin, m.control), ([5, 6], Some(noise)));
+        let distinct: std::collections::BTreeSet<u8> = p.rgb().iter().copied().collect();
+        assert!(
+            distinct.len() > 100,
+            "noise has {} distinct values",
+            distinct.len()
+        );
+        assert_eq!(
+            p.rgb(),
+            &control_texture(&report.rgb_u8(), noise)[..],
+            "seeded"
+        );
+        assert_ne!(
+            control_texture(&[0; 12], noise),
+            control_texture(&[0; 12], ControlKind::Noise { seed: 4 })
+        );
+    }
+
+    #[test]
+    fn files_without_a_placement_read_as_fixed() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let report = PatchReport {
+            texture: vec![0.25; 3 * 4 * 4],
+            side: 4,
+            origin: (1, 2),
+            initial_loss: 0.1,
+            epoch_loss: vec![],
+        };
+        let meta = PatchMeta::new(
+            &PatchConfig::default(),
+            &report,
+            [256.0, 256.0],
+            [96, 96],
+            Path::new("ck"),
+        );
+        save(dir.path(), &meta, &report.rgb_u8()).expect("save");
+        let mut v: serde_json::Value =
+            serde_json::from_str(&fs::read_to_string(dir.path().join(JSON)).expect("read"))
+                .expect("json");
+        let obj = v.as_object_mut().expect("object");
+        obj.remove("placement");
+        obj.remove("control");
+        fs::write(dir.path().join(JSON), v.to_string()).expect("write");
+        let (m, _) = load(dir.path()).expect("old file");
+        assert_eq!((m.placement, m.control), (Placement::Fixed, None));
     }
 
     #[test]

@@ -5,8 +5,8 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
 use mte_policy::config::{DiffusionConfig, ObsKind};
 use mte_policy::patch::{
-    Anchor, Ascent, FinetuneConfig, PatchConfig, PlacedPatch, ProbeConfig, finetune_encoder,
-    gradient_probe, paste, train_patch,
+    Anchor, Ascent, FinetuneConfig, PatchConfig, PlacedPatch, Placement, ProbeConfig,
+    finetune_encoder, gradient_probe, paste, train_patch,
 };
 use mte_policy::train::{TrainData, Windows, sample_batch};
 use mte_policy::{DiffusionPolicy, ObsBatch, StatsMap};
@@ -101,6 +101,7 @@ fn patch_config(seed: u64) -> PatchConfig {
     PatchConfig {
         side: 32,
         origin: [30, 30],
+        placement: Placement::Fixed,
         epochs: 4,
         batches_per_epoch: 4,
         batch_size: 8,
@@ -199,6 +200,58 @@ fn a_trained_patch_stays_in_range_and_is_reproducible() {
     )
     .expect("raw");
     assert_ne!(raw.texture, r.texture, "raw and sign ascent differ");
+}
+
+#[test]
+fn away_from_goal_placement_keeps_its_rule_and_moves_the_patch() {
+    let rule = Placement::AwayFromGoal {
+        region: [6, 6, 90, 90],
+        goal: [48.0, 48.0],
+        min_goal_distance: 28.0,
+    };
+    let origins = rule.origins(16, [0, 0]);
+    assert!(origins.len() > 100, "{} positions", origins.len());
+    for [x, y] in &origins {
+        assert!(
+            *x >= 6 && *y >= 6 && x + 16 <= 90 && y + 16 <= 90,
+            "({x}, {y}) leaves the crop"
+        );
+        let (cx, cy) = (*x as f64 + 8.0, *y as f64 + 8.0);
+        assert!(
+            (cx - 48.0).hypot(cy - 48.0) >= 28.0,
+            "({x}, {y}) too near the goal"
+        );
+    }
+    // A near corner is allowed, the goal's centre is not.
+    assert!(origins.contains(&[6, 6]) && !origins.contains(&[40, 40]));
+    assert_eq!(Placement::Fixed.origins(16, [3, 4]), vec![[3, 4]]);
+
+    // Trained with the rule, the patch differs from the same patch trained in one place.
+    let (p, _vm) = tiny(4);
+    let d = data();
+    let fixed = PatchConfig {
+        side: 16,
+        ..patch_config(5)
+    };
+    let sampled = PatchConfig {
+        placement: rule,
+        ..fixed.clone()
+    };
+    let a = train_patch(&p, &d, &fixed, &|_, _| {}).expect("fixed");
+    let b = train_patch(&p, &d, &sampled, &|_, _| {}).expect("sampled");
+    assert_ne!(a.texture, b.texture);
+    let again = train_patch(&p, &d, &sampled, &|_, _| {}).expect("sampled again");
+    assert_eq!(b.texture, again.texture, "placements come from the seed");
+    let empty = PatchConfig {
+        placement: Placement::AwayFromGoal {
+            region: [0, 0, 96, 96],
+            goal: [48.0, 48.0],
+            min_goal_distance: 1e3,
+        },
+        ..fixed
+    };
+    let e = train_patch(&p, &d, &empty, &|_, _| {}).expect_err("no position");
+    assert!(e.to_string().contains("placement"), "{e}");
 }
 
 #[test]

@@ -155,9 +155,11 @@ pub fn patch(cli: &Cli, a: &crate::args::AttackPatchArgs) -> Result<()> {
     // The world -> frame placement the simulator draws with, so training and evaluation agree.
     let probe = mte_sim::Patch::new(vec![0; a.side * a.side * 3], a.side, center)?;
     let (x, y) = probe.origin(w, h)?;
+    let placement = placement(&policy, a, [w, h])?;
     let cfg = PatchConfig {
         side: a.side,
         origin: [x, y],
+        placement,
         epochs: a.epochs,
         batches_per_epoch: a.batches_per_epoch,
         batch_size: a.batch_size,
@@ -194,6 +196,36 @@ pub fn patch(cli: &Cli, a: &crate::args::AttackPatchArgs) -> Result<()> {
         )?,
     }
     Ok(())
+}
+
+/// The training placement of `mte attack patch` in frame px: the goal's centre and the
+/// distance mapped from world px as the simulator draws, the region the policy's centre
+/// crop (what it sees at evaluation).
+fn placement(
+    policy: &mte_policy::DiffusionPolicy,
+    a: &crate::args::AttackPatchArgs,
+    [w, h]: [usize; 2],
+) -> Result<mte_policy::patch::Placement> {
+    use mte_policy::patch::Placement;
+    Ok(match a.placement {
+        crate::args::PlacementArg::Fixed => Placement::Fixed,
+        crate::args::PlacementArg::AwayFromGoal => {
+            ensure!(
+                a.min_goal_distance.is_finite() && a.min_goal_distance >= 0.0,
+                "--min-goal-distance {}: expected a finite distance >= 0 (world px)",
+                a.min_goal_distance
+            );
+            let [ch, cw] = policy.config().crop_shape.unwrap_or([h, w]);
+            let (x0, y0) = ((w - cw.min(w)) / 2, (h - ch.min(h)) / 2);
+            let scale = w as f64 / 512.0;
+            let goal = mte_sim::GOAL;
+            Placement::AwayFromGoal {
+                region: [x0, y0, x0 + cw.min(w), y0 + ch.min(h)],
+                goal: [goal.x * scale, goal.y * scale],
+                min_goal_distance: a.min_goal_distance * scale,
+            }
+        }
+    })
 }
 
 /// `mte defend finetune`
@@ -312,11 +344,17 @@ pub fn probe(cli: &Cli, a: &crate::args::ProbeArgs) -> Result<()> {
 
 /// `mte attack control`
 pub fn control(cli: &Cli, a: &crate::args::AttackControlArgs) -> Result<()> {
-    let meta = mte_eval::patch_file::mean_colour_control(&a.patch, &a.out)?;
+    use mte_eval::patch_file::ControlKind;
+    let kind = match a.kind {
+        crate::args::ControlArg::MeanColour => ControlKind::MeanColour,
+        crate::args::ControlArg::Grey => ControlKind::Grey,
+        crate::args::ControlArg::Noise => ControlKind::Noise { seed: a.seed },
+    };
+    let meta = mte_eval::patch_file::control(&a.patch, &a.out, kind)?;
     if !cli.quiet {
         writeln!(
             std::io::stdout(),
-            "wrote the mean-colour control of {} ({} px at world ({:.0}, {:.0})) to {}",
+            "wrote the {kind} control of {} ({} px at world ({:.0}, {:.0})) to {}",
             a.patch.display(),
             meta.side,
             meta.center[0],

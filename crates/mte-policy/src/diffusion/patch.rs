@@ -47,18 +47,72 @@ impl std::fmt::Display for Ascent {
     }
 }
 
+/// Where the texture sits in the frames of a training batch.
+///
+/// The paper's threat is a physical patch in the scene, away from the goal, that works
+/// wherever it lands; a patch trained at one place over the goal acts mostly as an occluder
+/// of the goal (BENCHMARKS.md, the grey-square control). mte's rule for `AwayFromGoal`:
+/// every batch draws the top-left pixel uniformly among those whose whole texture lies in
+/// the `region` (the frame's evaluation crop) and whose centre is at least
+/// `min_goal_distance` frame px from `goal` (the goal's centre in frame px).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case", tag = "kind")]
+pub enum Placement {
+    /// Every batch at [`PatchConfig::origin`].
+    Fixed,
+    /// A position per batch, away from the goal (see the type's doc).
+    AwayFromGoal {
+        /// Allowed area `[x0, y0, x1, y1]` in frame px (end exclusive).
+        region: [usize; 4],
+        /// Goal centre `[x, y]` in frame px.
+        goal: [f64; 2],
+        /// Least distance of the texture's centre from `goal`, frame px.
+        min_goal_distance: f64,
+    },
+}
+
+impl Placement {
+    /// The top-left pixels this rule allows for a `side` px texture, row-major.
+    pub fn origins(&self, side: usize, fixed: [usize; 2]) -> Vec<[usize; 2]> {
+        match self {
+            Placement::Fixed => vec![fixed],
+            Placement::AwayFromGoal {
+                region: [x0, y0, x1, y1],
+                goal,
+                min_goal_distance,
+            } => {
+                let half = side as f64 / 2.0;
+                let mut out = Vec::new();
+                for y in *y0..y1.saturating_sub(side) + 1 {
+                    for x in *x0..x1.saturating_sub(side) + 1 {
+                        let (cx, cy) = (x as f64 + half, y as f64 + half);
+                        if (cx - goal[0]).hypot(cy - goal[1]) >= *min_goal_distance {
+                            out.push([x, y]);
+                        }
+                    }
+                }
+                out
+            }
+        }
+    }
+}
+
 /// Patch training settings. Defaults: the protocol's 11 epochs and sign ascent at 1.5e-3 (the
 /// middle of its step grid {1e-4, 5e-4, 1.5e-3, 5e-3}); a 16 px patch (1/36 of a 96 px frame)
-/// at pixel (40, 40), i.e. centred on the table at world (256, 256); 16 batches of 16 windows per epoch, sized for 2
-/// CPU cores (the protocol's epochs run over the whole dataset on a GPU; set
-/// `batches_per_epoch` to `windows / batch_size` for that).
+/// at pixel (40, 40), i.e. centred on the table at world (256, 256), fixed; 16 batches of 16
+/// windows per epoch, sized for 2 CPU cores (the protocol's epochs run over the whole dataset
+/// on a GPU; set `batches_per_epoch` to `windows / batch_size` for that). `mte attack patch`
+/// defaults to [`Placement::AwayFromGoal`] instead.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct PatchConfig {
     /// Texture side (observation px).
     pub side: usize,
-    /// Top-left pixel `[x, y]` of the texture in the policy's (uncropped) frame.
+    /// Top-left pixel `[x, y]` of the texture in the policy's (uncropped) frame: where a
+    /// [`Placement::Fixed`] patch trains, and where the patch file says it is evaluated.
     pub origin: [usize; 2],
+    /// Where the texture sits in each training batch.
+    pub placement: Placement,
     /// Epochs.
     pub epochs: usize,
     /// Batches per epoch.
@@ -78,6 +132,7 @@ impl Default for PatchConfig {
         PatchConfig {
             side: 16,
             origin: [40, 40],
+            placement: Placement::Fixed,
             epochs: 11,
             batches_per_epoch: 16,
             batch_size: 16,
@@ -261,6 +316,27 @@ pub fn train_patch(
             format!("a texture inside the {w} x {h} frame"),
         ));
     }
+    let origins = cfg.placement.origins(cfg.side, cfg.origin);
+    if let Some(bad) = origins
+        .iter()
+        .find(|[x, y]| x + cfg.side > w || y + cfg.side > h)
+    {
+        return Err(config_err(
+            "placement",
+            format!("{:?} allows origin {bad:?}", cfg.placement),
+            format!("textures inside the {w} x {h} frame"),
+        ));
+    }
+    if origins.is_empty() {
+        return Err(config_err(
+            "placement",
+            format!("{:?}", cfg.placement),
+            format!(
+                "a rule that allows at least one position of a {} px texture",
+                cfg.side
+            ),
+        ));
+    }
     let win = Windows::new(data, policy.config(), false);
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let dev = policy.device();
@@ -272,8 +348,12 @@ pub fn train_patch(
         let mut total = 0.0;
         for _ in 0..cfg.batches_per_epoch {
             let b = batch(policy, data, &win, cfg.batch_size, &mut rng)?;
+            let [px, py] = match cfg.placement {
+                Placement::Fixed => [x, y],
+                _ => origins[rng.random_range(0..origins.len())],
+            };
             let var = Var::from_tensor(&patch)?;
-            let imgs = paste(images(&b)?, var.as_tensor(), x, y)?;
+            let imgs = paste(images(&b)?, var.as_tensor(), px, py)?;
             let loss = loss_with(policy, &b, &imgs)?;
             let grads = loss.backward()?;
             let g = grads

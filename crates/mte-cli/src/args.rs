@@ -147,9 +147,38 @@ impl From<SamplingArg> for mte_eval::pusht::Sampling {
 pub enum TrainCommand {
     /// Train Diffusion Policy on an `mte data generate` dataset.
     Diffusion(TrainDiffusionArgs),
+    /// Train ACT (state observations: PushT keypoints) on an `mte data generate` dataset.
+    Act(TrainActArgs),
     /// Pre-train an image policy's encoder to regress the block keypoints (a warm start for
     /// `train diffusion --init`; the dataset needs `--obs keypoints,pixels`).
     Encoder(TrainEncoderArgs),
+}
+
+/// `mte train act`
+#[derive(Debug, Args)]
+pub struct TrainActArgs {
+    /// Dataset directory (from `mte data generate`).
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Model preset: `paper` is LeRobot's ACT (width 512, 4 + 1 layers, chunk 100), `cpu` the
+    /// same at width 128 with 2 encoder layers.
+    #[arg(long, value_enum, default_value_t = PresetArg::Cpu)]
+    pub preset: PresetArg,
+    /// Optimiser steps in total (a resumed run continues to this count).
+    #[arg(long, default_value_t = 20000)]
+    pub steps: usize,
+    /// Frames per batch.
+    #[arg(long, default_value_t = 64)]
+    pub batch_size: usize,
+    /// Seed of every random draw.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Checkpoint every this many steps.
+    #[arg(long, default_value_t = 2000)]
+    pub checkpoint_every: usize,
+    /// Output directory; if it holds a training state, training resumes from it.
+    #[arg(long, short, value_name = "DIR")]
+    pub out: PathBuf,
 }
 
 /// `mte train encoder`

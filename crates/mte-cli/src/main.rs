@@ -39,6 +39,7 @@ fn main() -> ExitCode {
         Command::Data(DataCommand::Generate(a)) => cmd::data::generate(&cli, a),
         Command::Train(TrainCommand::Diffusion(a)) => cmd::train::diffusion(&cli, a),
         Command::Train(TrainCommand::Encoder(a)) => cmd::train::encoder(&cli, a),
+        Command::Train(TrainCommand::Act(a)) => cmd::train::act(&cli, a),
         Command::Eval(EvalCommand::Policy(a)) => cmd::eval::policy(&cli, a),
     };
     match result {

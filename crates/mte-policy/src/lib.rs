@@ -16,6 +16,7 @@
 //! injected seeded generator.
 #![forbid(unsafe_code)]
 
+pub mod act;
 pub mod diffusion;
 pub mod error;
 pub mod init;

@@ -139,7 +139,7 @@ pub fn attackable(policy: &dyn ChunkPolicy) -> Result<&dyn AttackablePolicy, Pol
 }
 
 /// The policy types [`load_policy`] knows, as `config.json` spells them.
-pub const POLICY_TYPES: &[&str] = &["diffusion"];
+pub const POLICY_TYPES: &[&str] = &["diffusion", "act"];
 
 /// Loads the policy in checkpoint directory `dir` (LeRobot's layout: `config.json` with its
 /// `type`, weights, processor files) on the CPU.
@@ -165,6 +165,7 @@ pub fn load_policy(dir: &Path) -> Result<Box<dyn ChunkPolicy + Send + Sync>, Pol
             dir,
             &candle_core::Device::Cpu,
         )?)),
+        "act" => Ok(Box::new(crate::act::ActPolicy::load(dir)?)),
         other => Err(config_err(
             "type",
             other,
@@ -180,13 +181,13 @@ mod tests {
     #[test]
     fn unknown_and_missing_types_name_the_known_ones() {
         let dir = tempfile::tempdir().expect("tmp");
-        std::fs::write(dir.path().join("config.json"), r#"{"type": "act"}"#).expect("write");
+        std::fs::write(dir.path().join("config.json"), r#"{"type": "vla"}"#).expect("write");
         let e = load_policy(dir.path())
             .err()
             .expect("unknown type")
             .to_string();
         assert!(
-            e.contains("`type` = \"act\"") && e.contains("diffusion"),
+            e.contains("`type` = \"vla\"") && e.contains("diffusion, act"),
             "{e}"
         );
         std::fs::write(dir.path().join("config.json"), "{}").expect("write");

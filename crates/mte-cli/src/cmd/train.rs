@@ -10,7 +10,9 @@ use mte_policy::config::{DiffusionConfig, ObsKind};
 use mte_policy::pretrain::{EncoderPretrainConfig, pretrain_encoder, save_encoder};
 use mte_policy::train::{TrainConfig, TrainData, train};
 
-use crate::args::{Cli, Format, PolicyObsArg, PresetArg, TrainDiffusionArgs, TrainEncoderArgs};
+use crate::args::{
+    Cli, Format, PolicyObsArg, PresetArg, TrainActArgs, TrainDiffusionArgs, TrainEncoderArgs,
+};
 use crate::progress::Bar;
 
 /// The preset for `obs`, with the fields of the JSON file `overrides` replaced.
@@ -86,6 +88,46 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
                 )?;
             }
         }
+    }
+    Ok(())
+}
+
+/// `mte train act`
+pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
+    use mte_policy::act::ActConfig;
+    use mte_policy::act::train::{ActTrainConfig, train as train_act};
+    let config = match a.preset {
+        PresetArg::Cpu => ActConfig::cpu(),
+        PresetArg::Paper => ActConfig::paper(),
+    };
+    // The keypoint arrays and their statistics, as a keypoint Diffusion Policy reads them.
+    let data = load_train_data(&a.data, &DiffusionConfig::cpu(ObsKind::Keypoints))?;
+    let tc = ActTrainConfig {
+        steps: a.steps,
+        batch_size: a.batch_size,
+        seed: a.seed,
+        checkpoint_every: a.checkpoint_every,
+    };
+    let bar = Bar::for_cli(cli, "train act", a.steps);
+    let report = train_act(&data, config, &tc, &a.out, &mut |step, l1, kld| {
+        let figure = (step % 10 == 0).then(|| format!("l1 {l1:.4} kld {kld:.4}"));
+        bar.set(step as u64, figure);
+    })?;
+    bar.finish();
+    let mut out = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(out, "{}", serde_json::to_string(&report)?)?,
+        Format::Text if !cli.quiet => writeln!(
+            out,
+            "trained {} steps (now at {}) in {:.0} s, final l1 {:.4} kld {:.4} -> {}",
+            report.steps_run,
+            report.step,
+            report.seconds,
+            report.final_l1,
+            report.final_kld,
+            a.out.display()
+        )?,
+        Format::Text => {}
     }
     Ok(())
 }

@@ -26,14 +26,17 @@ pub const PRE_STATS: &str = "policy_preprocessor_step_3_normalizer_processor.saf
 /// Unnormaliser statistics file we write (LeRobot 0.4 postprocessor step 0).
 pub const POST_STATS: &str = "policy_postprocessor_step_0_unnormalizer_processor.safetensors";
 
-fn ck(path: &Path, reason: impl Into<String>) -> PolicyError {
+pub(crate) fn ck(path: &Path, reason: impl Into<String>) -> PolicyError {
     PolicyError::Checkpoint {
         path: path.to_path_buf(),
         reason: reason.into(),
     }
 }
 
-fn read_tensors(path: &Path, device: &Device) -> Result<HashMap<String, Tensor>, PolicyError> {
+pub(crate) fn read_tensors(
+    path: &Path,
+    device: &Device,
+) -> Result<HashMap<String, Tensor>, PolicyError> {
     candle_core::safetensors::load(path, device)
         .map_err(|e| ck(path, format!("cannot read safetensors: {e}")))
 }
@@ -117,6 +120,16 @@ fn read_checkpoint(
     let weights = read_tensors(&wpath, device)?;
     let mut stats = StatsMap::new();
     stats_from_old(&weights, &config, &mut stats)?;
+    read_processor_stats(dir, device, &mut stats)?;
+    Ok((config, weights, stats))
+}
+
+/// Adds the statistics of LeRobot >= 0.4's processor files in `dir` to `stats`.
+pub(crate) fn read_processor_stats(
+    dir: &Path,
+    device: &Device,
+    stats: &mut StatsMap,
+) -> Result<(), PolicyError> {
     let mut files: Vec<_> = std::fs::read_dir(dir)
         .map_err(|source| PolicyError::Io {
             path: dir.to_path_buf(),
@@ -133,9 +146,9 @@ fn read_checkpoint(
         .collect();
     files.sort();
     for f in files {
-        stats_from_flat(&read_tensors(&f, device)?, &mut stats)?;
+        stats_from_flat(&read_tensors(&f, device)?, stats)?;
     }
-    Ok((config, weights, stats))
+    Ok(())
 }
 
 /// Load a checkpoint as trainable variables: the policy and the [`VarMap`] holding its
@@ -170,6 +183,13 @@ pub fn save(
     weights: &HashMap<String, Tensor>,
     stats: &StatsMap,
 ) -> Result<(), PolicyError> {
+    write_config(dir, config)?;
+    candle_core::safetensors::save(weights, dir.join(WEIGHTS))?;
+    save_stats(dir, stats)
+}
+
+/// Creates `dir` and writes `config` as `config.json`.
+pub(crate) fn write_config(dir: &Path, config: &impl serde::Serialize) -> Result<(), PolicyError> {
     std::fs::create_dir_all(dir).map_err(|source| PolicyError::Io {
         path: dir.to_path_buf(),
         source,
@@ -181,8 +201,11 @@ pub fn save(
     std::fs::write(dir.join(CONFIG), json + "\n").map_err(|source| PolicyError::Io {
         path: dir.join(CONFIG),
         source,
-    })?;
-    candle_core::safetensors::save(weights, dir.join(WEIGHTS))?;
+    })
+}
+
+/// Writes `stats` as LeRobot 0.4's normaliser and unnormaliser processor files.
+pub(crate) fn save_stats(dir: &Path, stats: &StatsMap) -> Result<(), PolicyError> {
     let flat = |filter: &dyn Fn(&str) -> bool| -> Result<HashMap<String, Tensor>, PolicyError> {
         let mut m = HashMap::new();
         for (name, s) in stats.iter().filter(|(n, _)| filter(n)) {

@@ -648,7 +648,7 @@ impl LossTrace {
 }
 
 /// Global gradient-norm clipping to `max`.
-fn clip_gradients(
+pub(crate) fn clip_gradients(
     grads: &mut candle_core::backprop::GradStore,
     vars: &[(String, Var)],
     max: f64,

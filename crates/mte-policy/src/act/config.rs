@@ -1,0 +1,304 @@
+//! ACT configuration in LeRobot's `config.json` schema (`"type": "act"`; field names and
+//! meanings are LeRobot 0.4.4's `ACTConfig`), with the two presets and `validate()`.
+//!
+//! mte's ACT reads state observations (`observation.state` and, on PushT,
+//! `observation.environment_state`); checkpoints with image features are refused with a typed
+//! error (the ResNet-18 backbone with frozen BatchNorm is not ported yet).
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::config::{FeatureType, PolicyFeature};
+use crate::error::{PolicyError, config_err};
+use crate::normalize::NormMode;
+
+/// LeRobot's `ACTConfig` fields that determine the network and its use.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct ActConfig {
+    /// Always "act" (LeRobot's registry key).
+    #[serde(rename = "type")]
+    pub kind: String,
+    /// Observation steps (ACT: 1).
+    pub n_obs_steps: usize,
+    /// Actions per chunk (T_p).
+    pub chunk_size: usize,
+    /// Actions executed per query in open-loop use.
+    pub n_action_steps: usize,
+    /// Inputs by name (`observation.state`, `observation.environment_state`).
+    pub input_features: BTreeMap<String, PolicyFeature>,
+    /// Outputs by name (`action`).
+    pub output_features: BTreeMap<String, PolicyFeature>,
+    /// Normalisation per feature kind (keys VISUAL, STATE, ENV, ACTION): LeRobot's default
+    /// is MEAN_STD for all.
+    pub normalization_mapping: BTreeMap<String, NormMode>,
+    /// Vision backbone name (unused without image features).
+    pub vision_backbone: String,
+    /// Pre-LayerNorm transformer layers (LeRobot and the original: false, post-norm).
+    pub pre_norm: bool,
+    /// Transformer width.
+    pub dim_model: usize,
+    /// Attention heads; divides `dim_model`.
+    pub n_heads: usize,
+    /// Feed-forward width.
+    pub dim_feedforward: usize,
+    /// Feed-forward activation ("relu", "gelu" or "glu"; mte implements relu and gelu).
+    pub feedforward_activation: String,
+    /// Transformer encoder layers.
+    pub n_encoder_layers: usize,
+    /// Transformer decoder layers (LeRobot and the original run 1; see LeRobot's note on the
+    /// original's bug).
+    pub n_decoder_layers: usize,
+    /// Train with the CVAE objective.
+    pub use_vae: bool,
+    /// Latent size of the CVAE.
+    pub latent_dim: usize,
+    /// Layers of the CVAE's encoder.
+    pub n_vae_encoder_layers: usize,
+    /// ACT's temporal ensembling coefficient (null: open loop).
+    pub temporal_ensemble_coeff: Option<f64>,
+    /// Dropout in training.
+    pub dropout: f64,
+    /// Weight of the KL term.
+    pub kl_weight: f64,
+    /// AdamW learning rate.
+    pub optimizer_lr: f64,
+    /// AdamW weight decay.
+    pub optimizer_weight_decay: f64,
+}
+
+impl Default for ActConfig {
+    fn default() -> Self {
+        Self::paper()
+    }
+}
+
+fn feature(kind: FeatureType, dim: usize) -> PolicyFeature {
+    PolicyFeature {
+        kind,
+        shape: vec![dim],
+    }
+}
+
+impl ActConfig {
+    /// LeRobot 0.4.4's `ACTConfig` defaults (the original ACT: width 512, 8 heads, 4 encoder
+    /// layers, 1 decoder layer, chunk 100, latent 32, KL weight 10), on PushT keypoints.
+    pub fn paper() -> Self {
+        let inputs = [
+            (
+                "observation.state".to_string(),
+                feature(FeatureType::State, 2),
+            ),
+            (
+                "observation.environment_state".to_string(),
+                feature(FeatureType::Env, 16),
+            ),
+        ];
+        let norm = ["VISUAL", "STATE", "ENV", "ACTION"].map(|k| (k.to_string(), NormMode::MeanStd));
+        ActConfig {
+            kind: "act".into(),
+            n_obs_steps: 1,
+            chunk_size: 100,
+            n_action_steps: 100,
+            input_features: inputs.into_iter().collect(),
+            output_features: [("action".to_string(), feature(FeatureType::Action, 2))]
+                .into_iter()
+                .collect(),
+            normalization_mapping: norm.into_iter().collect(),
+            vision_backbone: "resnet18".into(),
+            pre_norm: false,
+            dim_model: 512,
+            n_heads: 8,
+            dim_feedforward: 3200,
+            feedforward_activation: "relu".into(),
+            n_encoder_layers: 4,
+            n_decoder_layers: 1,
+            use_vae: true,
+            latent_dim: 32,
+            n_vae_encoder_layers: 4,
+            temporal_ensemble_coeff: None,
+            dropout: 0.1,
+            kl_weight: 10.0,
+            optimizer_lr: 1e-5,
+            optimizer_weight_decay: 1e-4,
+        }
+    }
+
+    /// The `cpu` preset: the same architecture at width 128 (4 heads, feed-forward 512, 2
+    /// encoder and 2 CVAE-encoder layers, chunk 100), trainable on 2 CPU cores; lr 1e-4 (the
+    /// paper preset's 1e-5 is tuned for ImageNet-initialised backbones and long runs).
+    pub fn cpu() -> Self {
+        ActConfig {
+            dim_model: 128,
+            n_heads: 4,
+            dim_feedforward: 512,
+            n_encoder_layers: 2,
+            n_vae_encoder_layers: 2,
+            latent_dim: 16,
+            optimizer_lr: 1e-4,
+            ..Self::paper()
+        }
+    }
+
+    /// Check every field the network depends on.
+    pub fn validate(&self) -> Result<(), PolicyError> {
+        if self.kind != "act" {
+            return Err(config_err("type", &self.kind, "\"act\""));
+        }
+        for (name, v) in [
+            ("chunk_size", self.chunk_size),
+            ("dim_model", self.dim_model),
+            ("n_heads", self.n_heads),
+            ("dim_feedforward", self.dim_feedforward),
+            ("n_encoder_layers", self.n_encoder_layers),
+            ("n_decoder_layers", self.n_decoder_layers),
+            ("latent_dim", self.latent_dim),
+        ] {
+            if v == 0 {
+                return Err(config_err(name, v, ">= 1"));
+            }
+        }
+        if self.n_obs_steps != 1 {
+            return Err(config_err(
+                "n_obs_steps",
+                self.n_obs_steps,
+                "1 (ACT sees one step)",
+            ));
+        }
+        if !self.dim_model.is_multiple_of(self.n_heads) {
+            return Err(config_err(
+                "n_heads",
+                self.n_heads,
+                format!("a divisor of dim_model = {}", self.dim_model),
+            ));
+        }
+        if self.n_action_steps == 0 || self.n_action_steps > self.chunk_size {
+            return Err(config_err(
+                "n_action_steps",
+                self.n_action_steps,
+                format!("1..={} (chunk_size)", self.chunk_size),
+            ));
+        }
+        if !matches!(self.feedforward_activation.as_str(), "relu" | "gelu") {
+            return Err(config_err(
+                "feedforward_activation",
+                &self.feedforward_activation,
+                "\"relu\" or \"gelu\"",
+            ));
+        }
+        if !(0.0..1.0).contains(&self.dropout) {
+            return Err(config_err(
+                "dropout",
+                self.dropout,
+                "a probability in [0, 1)",
+            ));
+        }
+        if let Some((name, _)) = self
+            .input_features
+            .iter()
+            .find(|(_, f)| f.kind == FeatureType::Visual)
+        {
+            return Err(config_err(
+                "input_features",
+                name,
+                "state features only (mte's ACT has no image backbone yet)",
+            ));
+        }
+        if self.env_state_dim().is_none() && self.state_dim().is_none() {
+            return Err(config_err(
+                "input_features",
+                self.input_features.keys().collect::<Vec<_>>(),
+                "observation.state and/or observation.environment_state",
+            ));
+        }
+        self.action_dim().map(|_| ())
+    }
+
+    fn dim_of(&self, kind: FeatureType) -> Option<usize> {
+        self.input_features
+            .values()
+            .find(|f| f.kind == kind)
+            .and_then(|f| f.shape.first().copied())
+    }
+
+    /// Robot state dimension (`observation.state`), if used.
+    pub fn state_dim(&self) -> Option<usize> {
+        self.dim_of(FeatureType::State)
+    }
+
+    /// Environment state dimension (`observation.environment_state`), if used.
+    pub fn env_state_dim(&self) -> Option<usize> {
+        self.dim_of(FeatureType::Env)
+    }
+
+    /// The action dimension.
+    pub fn action_dim(&self) -> Result<usize, PolicyError> {
+        match self.output_features.get("action") {
+            Some(f) if f.shape.len() == 1 && f.shape[0] > 0 => Ok(f.shape[0]),
+            other => Err(config_err(
+                "output_features",
+                other,
+                "an `action` feature of shape [d]",
+            )),
+        }
+    }
+
+    /// The normalisation of a feature kind; a kind the mapping lacks is left as it is
+    /// (LeRobot's rule: IDENTITY).
+    pub fn norm_mode(&self, key: &str) -> NormMode {
+        self.normalization_mapping
+            .get(key)
+            .copied()
+            .unwrap_or(NormMode::Identity)
+    }
+
+    /// Read a config file (LeRobot's `config.json`; missing fields take the paper preset's
+    /// values).
+    pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
+        let text = std::fs::read_to_string(path).map_err(|source| PolicyError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let c: ActConfig = serde_json::from_str(&text).map_err(|source| PolicyError::Json {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        c.validate()?;
+        Ok(c)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_validate_and_bad_fields_are_named() {
+        ActConfig::paper().validate().expect("paper");
+        ActConfig::cpu().validate().expect("cpu");
+        let bad = ActConfig {
+            n_heads: 3,
+            ..ActConfig::cpu()
+        };
+        assert!(
+            bad.validate()
+                .expect_err("3 heads")
+                .to_string()
+                .contains("n_heads")
+        );
+        let mut img = ActConfig::cpu();
+        img.input_features.insert(
+            "observation.image".into(),
+            PolicyFeature {
+                kind: FeatureType::Visual,
+                shape: vec![3, 96, 96],
+            },
+        );
+        let e = img.validate().expect_err("image").to_string();
+        assert!(e.contains("no image backbone"), "{e}");
+        assert_eq!(ActConfig::paper().state_dim(), Some(2));
+        assert_eq!(ActConfig::paper().env_state_dim(), Some(16));
+    }
+}

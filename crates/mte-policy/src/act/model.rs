@@ -1,0 +1,600 @@
+//! The ACT network (Zhao et al., as LeRobot 0.4.4 implements it) on candle, state inputs.
+//!
+//! Tokens of the transformer encoder: `[latent, robot state, environment state]`, each a
+//! linear projection to `dim_model`, with a learned 1-D position embedding; the decoder's
+//! `chunk_size` queries start at zero with a learned position embedding (DETR's object
+//! queries), cross-attend to the encoder, and a linear head maps them to actions. Training
+//! adds the CVAE encoder over `[cls, robot state, actions]` (fixed sinusoidal positions,
+//! padded actions masked) whose class token gives the latent's mean and `2 log sigma`; at
+//! inference the latent is zero. Layers are post-norm unless `pre_norm`; the decoder ends in a
+//! LayerNorm. Attention is PyTorch's `nn.MultiheadAttention` (packed `in_proj_weight`, the
+//! query scaled by `head_dim^-1/2` before the product).
+//!
+//! Tensors are batch-first here, `(B, L, D)`; LeRobot's are sequence-first, which changes no
+//! value. State-dict names are LeRobot's (`model.encoder.layers.0.self_attn.in_proj_weight`,
+//! ...), so its checkpoints load as they are.
+
+use std::cell::RefCell;
+
+use candle_core::{D, DType, Result, Tensor};
+use candle_nn::{Init, LayerNorm, Linear, Module, VarBuilder};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+
+use super::config::ActConfig;
+
+/// Training-time dropout drawing its masks from an injected stream.
+pub struct Dropout<'a> {
+    p: f64,
+    rng: &'a RefCell<ChaCha8Rng>,
+}
+
+impl<'a> Dropout<'a> {
+    /// Dropout with probability `p` from `rng`.
+    pub fn new(p: f64, rng: &'a RefCell<ChaCha8Rng>) -> Self {
+        Self { p, rng }
+    }
+
+    fn apply(&self, x: &Tensor) -> Result<Tensor> {
+        if self.p <= 0.0 {
+            return Ok(x.clone());
+        }
+        let keep = 1.0 / (1.0 - self.p);
+        let mut rng = self.rng.borrow_mut();
+        let mask: Vec<f32> = (0..x.elem_count())
+            .map(|_| {
+                if rng.random::<f64>() < self.p {
+                    0.0
+                } else {
+                    keep as f32
+                }
+            })
+            .collect();
+        x * Tensor::from_vec(mask, x.shape(), x.device())?
+    }
+}
+
+fn drop(x: &Tensor, d: Option<&Dropout<'_>>) -> Result<Tensor> {
+    match d {
+        Some(d) => d.apply(x),
+        None => Ok(x.clone()),
+    }
+}
+
+/// Xavier-uniform for a `(out, in)` matrix, as LeRobot initialises the transformer.
+fn xavier(out: usize, inp: usize) -> Init {
+    let bound = (6.0 / (out + inp) as f64).sqrt();
+    Init::Uniform {
+        lo: -bound,
+        up: bound,
+    }
+}
+
+fn linear_xavier(inp: usize, out: usize, vb: VarBuilder) -> Result<Linear> {
+    let w = vb.get_with_hints((out, inp), "weight", xavier(out, inp))?;
+    let bound = 1.0 / (inp as f64).sqrt();
+    let b = vb.get_with_hints(
+        out,
+        "bias",
+        Init::Uniform {
+            lo: -bound,
+            up: bound,
+        },
+    )?;
+    Ok(Linear::new(w, Some(b)))
+}
+
+fn layer_norm(d: usize, vb: VarBuilder) -> Result<LayerNorm> {
+    candle_nn::layer_norm(d, candle_nn::LayerNormConfig::default(), vb)
+}
+
+/// PyTorch's `nn.MultiheadAttention` (no bias_kv, no zero_attn).
+struct Attention {
+    in_w: Tensor,
+    in_b: Tensor,
+    out: Linear,
+    heads: usize,
+}
+
+impl Attention {
+    fn new(d: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            in_w: vb.get_with_hints((3 * d, d), "in_proj_weight", xavier(3 * d, d))?,
+            in_b: vb.get_with_hints(3 * d, "in_proj_bias", Init::Const(0.0))?,
+            out: linear_xavier(d, d, vb.pp("out_proj"))?,
+            heads,
+        })
+    }
+
+    /// `x (B, L, D)` through rows `part` of the packed projection, split into heads
+    /// `(B, H, L, D / H)`.
+    fn project(&self, x: &Tensor, part: usize) -> Result<Tensor> {
+        let (b, l, d) = x.dims3()?;
+        let w = self.in_w.narrow(0, part * d, d)?;
+        let bias = self.in_b.narrow(0, part * d, d)?;
+        let y = x.broadcast_matmul(&w.t()?)?.broadcast_add(&bias)?;
+        y.reshape((b, l, self.heads, d / self.heads))?
+            .transpose(1, 2)?
+            .contiguous()
+    }
+
+    /// Attention of queries `q` over keys `k` and values `v` (all `(B, L, D)`); `pad`, if
+    /// given, is an additive `(B, Lk)` mask (0 or -inf) over the keys.
+    fn forward(
+        &self,
+        q: &Tensor,
+        k: &Tensor,
+        v: &Tensor,
+        pad: Option<&Tensor>,
+        d: Option<&Dropout<'_>>,
+    ) -> Result<Tensor> {
+        let (b, lq, dim) = q.dims3()?;
+        let scale = 1.0 / ((dim / self.heads) as f64).sqrt();
+        let (q, k, v) = (
+            (self.project(q, 0)? * scale)?,
+            self.project(k, 1)?,
+            self.project(v, 2)?,
+        );
+        let mut scores = q.matmul(&k.transpose(2, 3)?.contiguous()?)?;
+        if let Some(mask) = pad {
+            scores = scores.broadcast_add(&mask.unsqueeze(1)?.unsqueeze(1)?)?;
+        }
+        let weights = drop(&candle_nn::ops::softmax_last_dim(&scores)?, d)?;
+        let y = weights.matmul(&v)?.transpose(1, 2)?.reshape((b, lq, dim))?;
+        self.out.forward(&y)
+    }
+}
+
+/// The position-wise feed-forward block: `linear2(dropout(act(linear1(x))))`.
+struct FeedForward {
+    linear1: Linear,
+    linear2: Linear,
+    gelu: bool,
+}
+
+impl FeedForward {
+    fn new(c: &ActConfig, vb: &VarBuilder) -> Result<Self> {
+        Ok(Self {
+            linear1: linear_xavier(c.dim_model, c.dim_feedforward, vb.pp("linear1"))?,
+            linear2: linear_xavier(c.dim_feedforward, c.dim_model, vb.pp("linear2"))?,
+            gelu: c.feedforward_activation == "gelu",
+        })
+    }
+
+    fn forward(&self, x: &Tensor, d: Option<&Dropout<'_>>) -> Result<Tensor> {
+        let h = self.linear1.forward(x)?;
+        let h = if self.gelu { h.gelu_erf()? } else { h.relu()? };
+        self.linear2.forward(&drop(&h, d)?)
+    }
+}
+
+fn add_pos(x: &Tensor, pos: Option<&Tensor>) -> Result<Tensor> {
+    match pos {
+        Some(p) => x.broadcast_add(p),
+        None => Ok(x.clone()),
+    }
+}
+
+struct EncoderLayer {
+    attn: Attention,
+    ff: FeedForward,
+    norm1: LayerNorm,
+    norm2: LayerNorm,
+    pre_norm: bool,
+}
+
+impl EncoderLayer {
+    fn new(c: &ActConfig, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            attn: Attention::new(c.dim_model, c.n_heads, vb.pp("self_attn"))?,
+            ff: FeedForward::new(c, &vb)?,
+            norm1: layer_norm(c.dim_model, vb.pp("norm1"))?,
+            norm2: layer_norm(c.dim_model, vb.pp("norm2"))?,
+            pre_norm: c.pre_norm,
+        })
+    }
+
+    fn forward(
+        &self,
+        x: &Tensor,
+        pos: Option<&Tensor>,
+        pad: Option<&Tensor>,
+        d: Option<&Dropout<'_>>,
+    ) -> Result<Tensor> {
+        let mut skip = x.clone();
+        let mut x = if self.pre_norm {
+            self.norm1.forward(x)?
+        } else {
+            x.clone()
+        };
+        let qk = add_pos(&x, pos)?;
+        x = (skip + drop(&self.attn.forward(&qk, &qk, &x, pad, d)?, d)?)?;
+        if self.pre_norm {
+            skip = x.clone();
+            x = self.norm2.forward(&x)?;
+        } else {
+            x = self.norm1.forward(&x)?;
+            skip = x.clone();
+        }
+        x = (skip + drop(&self.ff.forward(&x, d)?, d)?)?;
+        if self.pre_norm {
+            Ok(x)
+        } else {
+            self.norm2.forward(&x)
+        }
+    }
+}
+
+struct Encoder {
+    layers: Vec<EncoderLayer>,
+    norm: Option<LayerNorm>,
+}
+
+impl Encoder {
+    fn new(c: &ActConfig, n: usize, vb: VarBuilder) -> Result<Self> {
+        let layers = (0..n)
+            .map(|i| EncoderLayer::new(c, vb.pp(format!("layers.{i}"))))
+            .collect::<Result<_>>()?;
+        let norm = if c.pre_norm {
+            Some(layer_norm(c.dim_model, vb.pp("norm"))?)
+        } else {
+            None
+        };
+        Ok(Self { layers, norm })
+    }
+
+    fn forward(
+        &self,
+        mut x: Tensor,
+        pos: Option<&Tensor>,
+        pad: Option<&Tensor>,
+        d: Option<&Dropout<'_>>,
+    ) -> Result<Tensor> {
+        for layer in &self.layers {
+            x = layer.forward(&x, pos, pad, d)?;
+        }
+        match &self.norm {
+            Some(n) => n.forward(&x),
+            None => Ok(x),
+        }
+    }
+}
+
+struct DecoderLayer {
+    self_attn: Attention,
+    cross_attn: Attention,
+    ff: FeedForward,
+    norms: [LayerNorm; 3],
+    pre_norm: bool,
+}
+
+/// The decoder's inputs besides its tokens: the encoder output and both position embeddings.
+struct Memory<'a> {
+    out: &'a Tensor,
+    pos: &'a Tensor,
+    query_pos: &'a Tensor,
+}
+
+impl DecoderLayer {
+    fn new(c: &ActConfig, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            self_attn: Attention::new(c.dim_model, c.n_heads, vb.pp("self_attn"))?,
+            cross_attn: Attention::new(c.dim_model, c.n_heads, vb.pp("multihead_attn"))?,
+            ff: FeedForward::new(c, &vb)?,
+            norms: [
+                layer_norm(c.dim_model, vb.pp("norm1"))?,
+                layer_norm(c.dim_model, vb.pp("norm2"))?,
+                layer_norm(c.dim_model, vb.pp("norm3"))?,
+            ],
+            pre_norm: c.pre_norm,
+        })
+    }
+
+    /// One residual block around `f`, post- or pre-norm with norm `i`.
+    fn block(
+        &self,
+        x: &Tensor,
+        i: usize,
+        d: Option<&Dropout<'_>>,
+        f: impl FnOnce(&Tensor) -> Result<Tensor>,
+    ) -> Result<Tensor> {
+        if self.pre_norm {
+            let y = f(&self.norms[i].forward(x)?)?;
+            x + drop(&y, d)?
+        } else {
+            let y = f(x)?;
+            self.norms[i].forward(&(x + drop(&y, d)?)?)
+        }
+    }
+
+    fn forward(&self, x: &Tensor, m: &Memory<'_>, d: Option<&Dropout<'_>>) -> Result<Tensor> {
+        let x = self.block(x, 0, d, |x| {
+            let qk = x.broadcast_add(m.query_pos)?;
+            self.self_attn.forward(&qk, &qk, x, None, d)
+        })?;
+        let key = m.out.broadcast_add(m.pos)?;
+        let x = self.block(&x, 1, d, |x| {
+            let q = x.broadcast_add(m.query_pos)?;
+            self.cross_attn.forward(&q, &key, m.out, None, d)
+        })?;
+        self.block(&x, 2, d, |x| self.ff.forward(x, d))
+    }
+}
+
+/// The CVAE encoder of the training objective.
+struct VaeEncoder {
+    encoder: Encoder,
+    cls: Tensor,
+    state_proj: Option<Linear>,
+    action_proj: Linear,
+    latent_out: Linear,
+    pos: Tensor,
+}
+
+/// 1-D sinusoidal position table `(n, dim)`: `sin` at even columns, `cos` at odd ones, of
+/// `pos / 10000^(2 floor(j / 2) / dim)` (Attention Is All You Need; computed in f64).
+pub fn sinusoidal_table(n: usize, dim: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(n * dim);
+    for p in 0..n {
+        for j in 0..dim {
+            let angle = p as f64 / 10000f64.powf((2 * (j / 2)) as f64 / dim as f64);
+            out.push(if j % 2 == 0 { angle.sin() } else { angle.cos() } as f32);
+        }
+    }
+    out
+}
+
+/// The ACT network (weights under `model.` in LeRobot's checkpoints).
+pub struct ActNet {
+    config: ActConfig,
+    vae: Option<VaeEncoder>,
+    encoder: Encoder,
+    decoder: Vec<DecoderLayer>,
+    decoder_norm: LayerNorm,
+    state_proj: Option<Linear>,
+    env_proj: Option<Linear>,
+    latent_proj: Linear,
+    pos_1d: Tensor,
+    query_pos: Tensor,
+    head: Linear,
+}
+
+/// What the network returns: actions `(B, chunk, A)` and, with the CVAE, `(mu, 2 log sigma)`.
+pub struct ActOutput {
+    /// Normalised actions `(B, chunk_size, action_dim)`.
+    pub actions: Tensor,
+    /// The latent's mean and `2 log sigma`, `(B, latent_dim)` each, when the CVAE ran.
+    pub latent: Option<(Tensor, Tensor)>,
+}
+
+/// The CVAE inputs of a training batch.
+pub struct VaeInput<'a> {
+    /// Normalised target actions `(B, chunk_size, A)`.
+    pub actions: &'a Tensor,
+    /// `(B, chunk_size)`: 1 where the action is padding beyond the episode's end.
+    pub is_pad: &'a Tensor,
+    /// Standard normal draws for the reparameterisation, `(B, latent_dim)`.
+    pub eps: &'a Tensor,
+}
+
+impl ActNet {
+    /// Build from `config` and a `VarBuilder` rooted at the model (`model.` in checkpoints).
+    pub fn new(config: ActConfig, vb: VarBuilder) -> Result<Self> {
+        let c = &config;
+        let dm = c.dim_model;
+        let a = c.action_dim().map_err(candle_core::Error::wrap)?;
+        let lin = |inp: usize, name: &str| candle_nn::linear(inp, dm, vb.pp(name));
+        let state_proj = c
+            .state_dim()
+            .map(|s| lin(s, "encoder_robot_state_input_proj"))
+            .transpose()?;
+        let env_proj = c
+            .env_state_dim()
+            .map(|e| lin(e, "encoder_env_state_input_proj"))
+            .transpose()?;
+        let n_1d = 1 + usize::from(state_proj.is_some()) + usize::from(env_proj.is_some());
+        let vae = if c.use_vae {
+            Some(Self::vae(c, &vb)?)
+        } else {
+            None
+        };
+        let decoder = (0..c.n_decoder_layers)
+            .map(|i| DecoderLayer::new(c, vb.pp(format!("decoder.layers.{i}"))))
+            .collect::<Result<_>>()?;
+        Ok(Self {
+            vae,
+            encoder: Encoder::new(c, c.n_encoder_layers, vb.pp("encoder"))?,
+            decoder,
+            decoder_norm: layer_norm(dm, vb.pp("decoder.norm"))?,
+            state_proj,
+            env_proj,
+            latent_proj: lin(c.latent_dim, "encoder_latent_input_proj")?,
+            pos_1d: vb.get_with_hints(
+                (n_1d, dm),
+                "encoder_1d_feature_pos_embed.weight",
+                Init::Randn {
+                    mean: 0.0,
+                    stdev: 1.0,
+                },
+            )?,
+            query_pos: vb.get_with_hints(
+                (c.chunk_size, dm),
+                "decoder_pos_embed.weight",
+                Init::Randn {
+                    mean: 0.0,
+                    stdev: 1.0,
+                },
+            )?,
+            head: candle_nn::linear(dm, a, vb.pp("action_head"))?,
+            config,
+        })
+    }
+
+    fn vae(c: &ActConfig, vb: &VarBuilder) -> Result<VaeEncoder> {
+        let dm = c.dim_model;
+        let a = c.action_dim().map_err(candle_core::Error::wrap)?;
+        let state_proj = c
+            .state_dim()
+            .map(|s| candle_nn::linear(s, dm, vb.pp("vae_encoder_robot_state_input_proj")))
+            .transpose()?;
+        let n = 1 + c.chunk_size + usize::from(state_proj.is_some());
+        let pos = Tensor::from_vec(sinusoidal_table(n, dm), (1, n, dm), vb.device())?;
+        Ok(VaeEncoder {
+            encoder: Encoder::new(c, c.n_vae_encoder_layers, vb.pp("vae_encoder"))?,
+            cls: vb.get_with_hints(
+                (1, dm),
+                "vae_encoder_cls_embed.weight",
+                Init::Randn {
+                    mean: 0.0,
+                    stdev: 1.0,
+                },
+            )?,
+            state_proj,
+            action_proj: candle_nn::linear(a, dm, vb.pp("vae_encoder_action_input_proj"))?,
+            latent_out: candle_nn::linear(
+                dm,
+                2 * c.latent_dim,
+                vb.pp("vae_encoder_latent_output_proj"),
+            )?,
+            pos,
+        })
+    }
+
+    /// The config.
+    pub fn config(&self) -> &ActConfig {
+        &self.config
+    }
+
+    /// The CVAE encoder's fixed position table `(1, S, D)` (LeRobot's `vae_encoder_pos_enc`
+    /// buffer, written into checkpoints so LeRobot loads them strictly).
+    pub fn vae_pos_enc(&self) -> Option<&Tensor> {
+        self.vae.as_ref().map(|v| &v.pos)
+    }
+
+    /// The latent's `(mu, 2 log sigma)` from the CVAE encoder.
+    fn encode_latent(
+        &self,
+        vae: &VaeEncoder,
+        state: Option<&Tensor>,
+        input: &VaeInput<'_>,
+        d: Option<&Dropout<'_>>,
+    ) -> Result<(Tensor, Tensor)> {
+        let b = input.actions.dim(0)?;
+        let dm = self.config.dim_model;
+        let mut tokens = vec![
+            vae.cls
+                .unsqueeze(0)?
+                .broadcast_as((b, 1, dm))?
+                .contiguous()?,
+        ];
+        let mut fixed = 1;
+        if let (Some(p), Some(s)) = (&vae.state_proj, state) {
+            tokens.push(p.forward(s)?.unsqueeze(1)?);
+            fixed += 1;
+        }
+        tokens.push(vae.action_proj.forward(input.actions)?);
+        let x = Tensor::cat(&tokens, 1)?;
+        let keep = Tensor::zeros((b, fixed), DType::F32, x.device())?;
+        let is_pad = Tensor::cat(&[keep, input.is_pad.to_dtype(DType::F32)?], 1)?;
+        let mask = (is_pad * -1e9)?;
+        let out = vae.encoder.forward(x, Some(&vae.pos), Some(&mask), d)?;
+        let params = vae.latent_out.forward(&out.narrow(1, 0, 1)?.squeeze(1)?)?;
+        let l = self.config.latent_dim;
+        Ok((params.narrow(1, 0, l)?, params.narrow(1, l, l)?))
+    }
+
+    /// Normalised observations in, normalised actions out. `state (B, s)`, `env (B, e)` as
+    /// the config has them; `vae` (training) runs the CVAE encoder and samples the latent,
+    /// else the latent is zero; `d` is training dropout.
+    pub fn forward(
+        &self,
+        state: Option<&Tensor>,
+        env: Option<&Tensor>,
+        vae: Option<&VaeInput<'_>>,
+        d: Option<&Dropout<'_>>,
+    ) -> Result<ActOutput> {
+        let b = state.or(env).map(|t| t.dim(0)).transpose()?.unwrap_or(1);
+        let dev = self.pos_1d.device();
+        let (latent, z) = match (&self.vae, vae) {
+            (Some(enc), Some(input)) => {
+                let (mu, log_sigma_x2) = self.encode_latent(enc, state, input, d)?;
+                let z = (&mu + (&log_sigma_x2 / 2.0)?.exp()?.mul(input.eps)?)?;
+                (Some((mu, log_sigma_x2)), z)
+            }
+            _ => (
+                None,
+                Tensor::zeros((b, self.config.latent_dim), DType::F32, dev)?,
+            ),
+        };
+        let mut tokens = vec![self.latent_proj.forward(&z)?];
+        for (proj, input) in [(&self.state_proj, state), (&self.env_proj, env)] {
+            if let Some(p) = proj {
+                let x = input.ok_or_else(|| {
+                    candle_core::Error::Msg("a configured input is missing".into())
+                })?;
+                tokens.push(p.forward(x)?);
+            }
+        }
+        let x = Tensor::stack(&tokens, 1)?;
+        let pos = self.pos_1d.unsqueeze(0)?;
+        let memory = self.encoder.forward(x, Some(&pos), None, d)?;
+        let query_pos = self.query_pos.unsqueeze(0)?;
+        let m = Memory {
+            out: &memory,
+            pos: &pos,
+            query_pos: &query_pos,
+        };
+        let dm = self.config.dim_model;
+        let mut y = Tensor::zeros((b, self.config.chunk_size, dm), DType::F32, dev)?;
+        for layer in &self.decoder {
+            y = layer.forward(&y, &m, d)?;
+        }
+        let y = self.decoder_norm.forward(&y)?;
+        Ok(ActOutput {
+            actions: self.head.forward(&y)?,
+            latent,
+        })
+    }
+
+    /// LeRobot's loss: the L1 error over non-padded actions (averaged over every element, as
+    /// LeRobot's `.mean()` does) plus `kl_weight` times the KL divergence of the latent from
+    /// the standard normal (summed over the latent, averaged over the batch).
+    pub fn loss(
+        &self,
+        out: &ActOutput,
+        target: &Tensor,
+        is_pad: &Tensor,
+    ) -> Result<(Tensor, f32, f32)> {
+        let keep = (1.0 - is_pad.to_dtype(DType::F32)?)?.unsqueeze(D::Minus1)?;
+        let l1 = (&out.actions - target)?
+            .abs()?
+            .broadcast_mul(&keep)?
+            .mean_all()?;
+        let Some((mu, ls)) = &out.latent else {
+            let v = l1.to_scalar::<f32>()?;
+            return Ok((l1, v, 0.0));
+        };
+        let kld = ((1.0 + ls)? - mu.sqr()? - ls.exp()?)?
+            .affine(-0.5, 0.0)?
+            .sum(1)?
+            .mean_all()?;
+        let total = (&l1 + (&kld * self.config.kl_weight)?)?;
+        let (a, b) = (l1.to_scalar::<f32>()?, kld.to_scalar::<f32>()?);
+        Ok((total, a, b))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sinusoid_table_matches_the_formula_at_known_points() {
+        let t = sinusoidal_table(3, 4);
+        // Position 0: sin 0, cos 0, sin 0, cos 0.
+        assert_eq!(&t[..4], &[0.0, 1.0, 0.0, 1.0]);
+        // Position 2, column 2: sin(2 / 10000^(2/4)) = sin(0.02).
+        assert!((t[2 * 4 + 2] - 0.02f32.sin()).abs() < 1e-7);
+        assert!((t[2 * 4 + 1] - 2f32.cos()).abs() < 1e-7);
+    }
+}

@@ -1,0 +1,270 @@
+//! Training ACT on an `mte-demo-v1` dataset: AdamW at the config's learning rate and weight
+//! decay, gradient norm clipped at 10 (LeRobot's default), batches of single frames with the
+//! next `chunk_size` actions (actions past an episode's end repeat its last action and are
+//! marked as padding, so the L1 term ignores them and the CVAE encoder masks them), the
+//! CVAE's noise and dropout masks drawn from a stream keyed by `(seed, step)`. A run
+//! checkpoints every `checkpoint_every` steps and resumes from its output directory
+//! (AdamW's moments restart, as for Diffusion Policy).
+
+use std::cell::RefCell;
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+use super::config::ActConfig;
+use super::model::{Dropout, VaeInput};
+use super::policy::ActPolicy;
+use crate::error::{PolicyError, config_err};
+use crate::train::{TrainData, clip_gradients};
+
+/// ACT training settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ActTrainConfig {
+    /// Optimiser steps in total (a resumed run continues to this count).
+    pub steps: usize,
+    /// Frames per batch.
+    pub batch_size: usize,
+    /// Seed of batches, CVAE noise and dropout.
+    pub seed: u64,
+    /// Checkpoint period (steps).
+    pub checkpoint_every: usize,
+}
+
+impl ActTrainConfig {
+    /// Check every field.
+    pub fn validate(&self) -> Result<(), PolicyError> {
+        for (name, v) in [("steps", self.steps), ("batch_size", self.batch_size)] {
+            if v == 0 {
+                return Err(config_err(name, v, ">= 1"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What a run did.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ActTrainReport {
+    /// Steps run by this call.
+    pub steps_run: usize,
+    /// The step reached.
+    pub step: usize,
+    /// Mean L1 and KL terms over the last 100 steps.
+    pub final_l1: f32,
+    /// Mean KL over the last 100 steps.
+    pub final_kld: f32,
+    /// Wall time of this call (s).
+    pub seconds: f64,
+}
+
+const STATE_FILE: &str = "training_state.json";
+
+#[derive(Serialize, Deserialize)]
+struct TrainingState {
+    step: usize,
+    train: ActTrainConfig,
+}
+
+/// One batch: normalised inputs, targets and padding.
+struct Batch {
+    state: Option<Tensor>,
+    env: Option<Tensor>,
+    actions: Tensor,
+    is_pad: Tensor,
+    eps: Tensor,
+}
+
+/// Frames `idx` of `data` as a normalised batch (targets: the next `chunk_size` actions).
+fn batch(
+    policy: &ActPolicy,
+    data: &TrainData,
+    starts: &[usize],
+    idx: &[usize],
+    rng: &mut ChaCha8Rng,
+) -> Result<Batch, PolicyError> {
+    let c = policy.config();
+    let (s, a) = (c.chunk_size, c.action_dim()?);
+    let frames = (data.action.len() / a).max(1);
+    let sd = data.state.len() / frames;
+    let ed = data.env_state.as_ref().map(|e| e.len() / frames);
+    let obs: Vec<crate::policy::Observation> = idx
+        .iter()
+        .map(|&f| crate::policy::Observation {
+            state: data.state[f * sd..(f + 1) * sd].to_vec(),
+            env_state: data
+                .env_state
+                .as_ref()
+                .zip(ed)
+                .map(|(e, d)| e[f * d..(f + 1) * d].to_vec()),
+            image: None,
+        })
+        .collect();
+    let refs: Vec<&crate::policy::Observation> = obs.iter().collect();
+    let (state, env) = policy.obs_tensors(&refs)?;
+    let mut actions = Vec::with_capacity(idx.len() * s * a);
+    let mut pad = Vec::with_capacity(idx.len() * s);
+    for &f in idx {
+        let ep = starts.partition_point(|&st| st <= f) - 1;
+        let end = starts[ep + 1];
+        for k in 0..s {
+            let g = (f + k).min(end - 1);
+            let mut row = data.action[g * a..(g + 1) * a].to_vec();
+            policy.normalize_action(&mut row);
+            actions.extend(row);
+            pad.push(if f + k >= end { 1f32 } else { 0.0 });
+        }
+    }
+    let b = idx.len();
+    let eps: Vec<f32> = (0..b * c.latent_dim)
+        .map(|_| StandardNormal.sample(rng))
+        .collect();
+    let dev = Device::Cpu;
+    Ok(Batch {
+        state,
+        env,
+        actions: Tensor::from_vec(actions, (b, s, a), &dev)?,
+        is_pad: Tensor::from_vec(pad, (b, s), &dev)?,
+        eps: Tensor::from_vec(eps, (b, c.latent_dim), &dev)?,
+    })
+}
+
+/// Trains (or resumes) an ACT policy of `config` on `data` into `out`; `progress(step, l1,
+/// kld)` after every step.
+pub fn train(
+    data: &TrainData,
+    config: ActConfig,
+    train: &ActTrainConfig,
+    out: &Path,
+    progress: &mut dyn FnMut(usize, f32, f32),
+) -> Result<ActTrainReport, PolicyError> {
+    train.validate()?;
+    config.validate()?;
+    let t0 = std::time::Instant::now();
+    let varmap = VarMap::new();
+    let vb = crate::init::seeded_var_builder(&varmap, train.seed, DType::F32, &Device::Cpu);
+    let policy = ActPolicy::new(config.clone(), data.stats.clone(), vb)?;
+    let mut step = resume(&varmap, out)?;
+    let vars: Vec<Var> = varmap.all_vars();
+    let mut opt = AdamW::new(
+        vars.clone(),
+        ParamsAdamW {
+            lr: config.optimizer_lr,
+            weight_decay: config.optimizer_weight_decay,
+            ..ParamsAdamW::default()
+        },
+    )?;
+    let named: Vec<(String, Var)> = vars.iter().map(|v| (String::new(), v.clone())).collect();
+    let mut starts = vec![0usize];
+    for l in &data.episode_lengths {
+        starts.push(starts[starts.len() - 1] + l);
+    }
+    let frames = starts[starts.len() - 1];
+    if frames == 0 {
+        return Err(config_err("dataset", 0, "at least one frame"));
+    }
+    let (start_step, mut recent) = (step, Vec::<(f32, f32)>::new());
+    while step < train.steps {
+        let mut rng = ChaCha8Rng::seed_from_u64(
+            train.seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        let idx: Vec<usize> = (0..train.batch_size)
+            .map(|_| rng.random_range(0..frames))
+            .collect();
+        let b = batch(&policy, data, &starts, &idx, &mut rng)?;
+        let drop_rng = RefCell::new(ChaCha8Rng::seed_from_u64(rng.random()));
+        let dropout = Dropout::new(config.dropout, &drop_rng);
+        let vae = VaeInput {
+            actions: &b.actions,
+            is_pad: &b.is_pad,
+            eps: &b.eps,
+        };
+        let o =
+            policy
+                .net()
+                .forward(b.state.as_ref(), b.env.as_ref(), Some(&vae), Some(&dropout))?;
+        let (loss, l1, kld) = policy.net().loss(&o, &b.actions, &b.is_pad)?;
+        if !l1.is_finite() || !kld.is_finite() {
+            return Err(config_err(
+                "loss",
+                l1 + kld,
+                "finite (training diverged; lower optimizer_lr)",
+            ));
+        }
+        let mut grads = loss.backward()?;
+        clip_gradients(&mut grads, &named, 10.0)?;
+        opt.step(&grads)?;
+        step += 1;
+        recent.push((l1, kld));
+        if recent.len() > 100 {
+            recent.remove(0);
+        }
+        progress(step, l1, kld);
+        if step == train.steps
+            || (train.checkpoint_every > 0 && step.is_multiple_of(train.checkpoint_every))
+        {
+            save(&policy, &varmap, out, step, train)?;
+        }
+    }
+    let n = recent.len().max(1) as f32;
+    Ok(ActTrainReport {
+        steps_run: step - start_step,
+        step,
+        final_l1: recent.iter().map(|r| r.0).sum::<f32>() / n,
+        final_kld: recent.iter().map(|r| r.1).sum::<f32>() / n,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+fn save(
+    policy: &ActPolicy,
+    varmap: &VarMap,
+    out: &Path,
+    step: usize,
+    train: &ActTrainConfig,
+) -> Result<(), PolicyError> {
+    policy.save(out, varmap)?;
+    let state = TrainingState {
+        step,
+        train: train.clone(),
+    };
+    let path = out.join(STATE_FILE);
+    let text = serde_json::to_string_pretty(&state).map_err(|source| PolicyError::Json {
+        path: path.clone(),
+        source,
+    })?;
+    std::fs::write(&path, text).map_err(|source| PolicyError::Io { path, source })
+}
+
+/// Loads the weights of a previous run in `out` into `varmap`; the step it reached (0 when
+/// there is none).
+fn resume(varmap: &VarMap, out: &Path) -> Result<usize, PolicyError> {
+    let path = out.join(STATE_FILE);
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        return Ok(0);
+    };
+    let state: TrainingState =
+        serde_json::from_str(&text).map_err(|source| PolicyError::Json { path, source })?;
+    let wpath = out.join(crate::checkpoint::WEIGHTS);
+    let weights = candle_core::safetensors::load(&wpath, &Device::Cpu)?;
+    let vars = varmap
+        .data()
+        .lock()
+        .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
+    for (name, var) in vars.iter() {
+        let t = weights
+            .get(&format!("model.{name}"))
+            .ok_or_else(|| crate::checkpoint::ck(&wpath, format!("missing model.{name}")))?;
+        var.set(t)?;
+    }
+    Ok(state.step)
+}
+
+/// A `VarBuilder` over `varmap` for a fresh policy (the seeded initialisation).
+pub fn seeded(varmap: &VarMap, seed: u64) -> VarBuilder<'static> {
+    crate::init::seeded_var_builder(varmap, seed, DType::F32, &Device::Cpu)
+}

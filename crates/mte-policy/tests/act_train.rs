@@ -103,6 +103,43 @@ fn trains_checkpoints_loads_and_resumes() {
             .expect("again")
     );
 
+    // PGD on the keypoints: a zero radius gives the clean chunk bit for bit; a positive one
+    // moves it, reproducibly from the attack stream.
+    let attack = policy.attackable().expect("ACT is attackable");
+    let pgd = |eps: f64| mte_policy::PgdConfig {
+        eps,
+        step: (eps / 4.0).max(1e-3),
+        iterations: 8,
+        ..mte_policy::PgdConfig::default()
+    };
+    let seeded = |s: u64| <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(s);
+    let (mut a, mut b) = (seeded(1), seeded(2));
+    let zero = attack
+        .predict_chunk_attacked(std::slice::from_ref(&obs), &pgd(0.0), &mut a, &mut b)
+        .expect("eps 0");
+    assert_eq!(zero, chunk);
+    let hit = attack
+        .predict_chunk_attacked(
+            std::slice::from_ref(&obs),
+            &pgd(0.5),
+            &mut seeded(1),
+            &mut b,
+        )
+        .expect("eps 0.5");
+    let again = attack
+        .predict_chunk_attacked(
+            std::slice::from_ref(&obs),
+            &pgd(0.5),
+            &mut seeded(1),
+            &mut b,
+        )
+        .expect("again");
+    assert_eq!(hit, again);
+    assert!(
+        hit.iter().zip(&chunk).any(|(x, y)| (x - y).abs() > 1e-3),
+        "the attack did not move the chunk"
+    );
+
     // Resume to 70 steps from the directory; the same seed from scratch gives the same run.
     let more = ActTrainConfig {
         steps: 70,

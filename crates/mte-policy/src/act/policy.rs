@@ -11,13 +11,14 @@ use rand::RngCore;
 
 use super::config::ActConfig;
 use super::model::ActNet;
+use crate::attack::PgdConfig;
 use crate::checkpoint::{
     CONFIG, WEIGHTS, ck, read_processor_stats, read_tensors, save_stats, write_config,
 };
 use crate::error::PolicyError;
 use crate::model::StatsMap;
 use crate::normalize::{Normalizer, Stats};
-use crate::policy::{ChunkPolicy, ObsNeeds, Observation};
+use crate::policy::{AttackablePolicy, ChunkPolicy, ObsNeeds, Observation};
 
 /// An ACT policy: the network, its normalisers and statistics.
 pub struct ActPolicy {
@@ -190,6 +191,9 @@ impl ChunkPolicy for ActPolicy {
             image: None,
         }
     }
+    fn attackable(&self) -> Option<&dyn AttackablePolicy> {
+        Some(self)
+    }
     /// ACT is deterministic at inference (latent zero): `rng` is not drawn from.
     fn predict_chunk(
         &self,
@@ -200,5 +204,66 @@ impl ChunkPolicy for ActPolicy {
             .last()
             .ok_or_else(|| crate::error::config_err("history", 0, "1 observation"))?;
         self.predict(obs)
+    }
+}
+
+/// PGD on ACT (the paper's observation attack, transferred): the *normalised* environment
+/// state (PushT: the block keypoints) is perturbed inside the L-infinity ball of radius
+/// `eps`, climbing ACT's own training loss, the L1 distance of the predicted chunk from the
+/// chunk predicted at the clean observation, by `step * sign(gradient)` per iteration. That
+/// loss is flat at the clean observation (its minimum), so the attack always starts from a
+/// uniform point in the ball (drawn from `attack_rng`), whatever `random_start` says;
+/// `samples` is unused (ACT is deterministic). The agent's own position is left alone.
+impl AttackablePolicy for ActPolicy {
+    fn predict_chunk_attacked(
+        &self,
+        history: &[Observation],
+        pgd: &PgdConfig,
+        attack_rng: &mut dyn RngCore,
+        _sample_rng: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError> {
+        use rand::Rng;
+        pgd.validate()?;
+        let obs = history
+            .last()
+            .ok_or_else(|| crate::error::config_err("history", 0, "1 observation"))?;
+        let (state, env) = self.obs_tensors(&[obs])?;
+        let env0 = env.ok_or_else(|| PolicyError::Input {
+            name: "policy",
+            reason: "PGD perturbs the environment state, and this ACT reads none".into(),
+        })?;
+        let clean = self
+            .net
+            .forward(state.as_ref(), Some(&env0), None, None)?
+            .actions
+            .detach();
+        let n = env0.elem_count();
+        let eps = pgd.eps as f32;
+        let start: Vec<f32> = (0..n)
+            .map(|_| attack_rng.random_range(-eps..=eps))
+            .collect();
+        let mut delta = Tensor::from_vec(start, env0.shape(), env0.device())?;
+        for _ in 0..pgd.iterations {
+            let x = candle_core::Var::from_tensor(&(&env0 + &delta)?)?;
+            let out = self
+                .net
+                .forward(state.as_ref(), Some(x.as_tensor()), None, None)?;
+            let loss = (&out.actions - &clean)?.abs()?.mean_all()?;
+            let grads = loss.backward()?;
+            let Some(g) = grads.get(x.as_tensor()) else {
+                break;
+            };
+            delta = (&delta + (g.sign()? * pgd.step)?)?
+                .clamp(-eps, eps)?
+                .detach();
+        }
+        let out = self
+            .net
+            .forward(state.as_ref(), Some(&(&env0 + &delta)?), None, None)?;
+        let mut chunk = out.actions.squeeze(0)?.flatten_all()?.to_vec1::<f32>()?;
+        for row in chunk.chunks_mut(self.action_norm.dim()) {
+            self.action_norm.unnormalize(row);
+        }
+        Ok(chunk)
     }
 }

@@ -5,6 +5,7 @@
 - ``ACTTemporalEnsembler``: a drop-in for LeRobot's class of that name (same constructor,
   ``reset()`` and ``update()``), plus an ``aggregator`` argument.
 - ``mte.stats``: McNemar, Wilcoxon, two-proportion z, Holm, AUROC, Wilson.
+- ``mte.policy.load(dir).predict(history, seed)``: mte's Diffusion Policy and ACT checkpoints.
 - ``gymnasium.make("mte/PushT-v0", obs_type=...)`` after ``import mte``: native PushT with
   gym-pusht's observation types, and ``mte.envs.VecPushT`` stepping many in Rust.
 
@@ -19,7 +20,7 @@ from typing import Any, Dict, Tuple
 
 import numpy as np
 
-from . import _native, stats
+from . import _native, policy, stats
 from ._native import MteError, __version__
 from .act import ACTTemporalEnsembler
 
@@ -28,6 +29,7 @@ __all__ = [
     "MteError",
     "TemporalEnsembler",
     "__version__",
+    "policy",
     "stats",
 ]
 

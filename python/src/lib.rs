@@ -6,6 +6,7 @@
 use pyo3::prelude::*;
 
 mod ensembler;
+mod policy;
 mod sim;
 mod stats;
 
@@ -26,6 +27,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("MteError", m.py().get_type::<MteError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add_class::<ensembler::PyTemporalEnsembler>()?;
+    m.add_class::<policy::PyPolicy>()?;
     m.add_class::<sim::PyPushT>()?;
     m.add_class::<sim::PyVecPushT>()?;
     stats::register(m)?;

@@ -219,6 +219,15 @@ pub enum PresetArg {
     Cpu,
 }
 
+/// The noise network of `mte train diffusion`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum BackboneArg {
+    /// The conditional U-Net 1D.
+    Unet,
+    /// `TransformerForDiffusion`.
+    Transformer,
+}
+
 /// Observation a policy conditions on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum PolicyObsArg {
@@ -240,6 +249,10 @@ pub struct TrainDiffusionArgs {
     /// Observation to condition on.
     #[arg(long, value_enum, default_value_t = PolicyObsArg::Keypoints)]
     pub obs: PolicyObsArg,
+    /// Noise network: LeRobot's U-Net, or Diffusion Policy's transformer (the Diffusion
+    /// Transformer: horizon 10 with images, 16 with keypoints; 2 observations, 8 executed).
+    #[arg(long, value_enum, default_value_t = BackboneArg::Unet)]
+    pub backbone: BackboneArg,
     /// JSON file of config fields overriding the preset (LeRobot's config.json names).
     #[arg(long, value_name = "FILE")]
     pub config: Option<PathBuf>,

@@ -53,7 +53,12 @@ fn unet_forward(bencher: divan::Bencher, preset: &str) {
     };
     let x = Tensor::randn(0f32, 1.0, (1, 16, 2), &Device::Cpu).expect("x");
     let cond = Tensor::randn(0f32, 1.0, (1, g), &Device::Cpu).expect("cond");
-    bencher.bench_local(|| p.unet().forward(&x, &[50], &cond).expect("forward"));
+    bencher.bench_local(|| {
+        p.unet()
+            .expect("U-Net")
+            .forward(&x, &[50], &cond)
+            .expect("forward")
+    });
 }
 
 #[divan::bench(args = ["paper", "cpu-image", "cpu-keypoints"], sample_count = 3)]

@@ -17,6 +17,7 @@
 #![forbid(unsafe_code)]
 
 pub mod act;
+pub mod attention;
 pub mod diffusion;
 pub mod error;
 pub mod init;
@@ -25,7 +26,9 @@ pub mod normalize;
 pub mod policy;
 pub mod vision;
 
-pub use diffusion::{attack, checkpoint, config, model, patch, pretrain, scheduler, train, unet};
+pub use diffusion::{
+    attack, checkpoint, config, model, patch, pretrain, scheduler, train, transformer, unet,
+};
 
 pub use attack::{PgdConfig, PgdOutcome};
 pub use config::{DiffusionConfig, ObsKind};

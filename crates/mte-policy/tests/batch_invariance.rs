@@ -17,10 +17,22 @@ mod common;
 
 type R = Result<(), Box<dyn std::error::Error>>;
 
+/// Observation kinds, each with the U-Net and with the Diffusion Transformer.
+const KINDS: [(ObsKind, bool); 4] = [
+    (ObsKind::Keypoints, false),
+    (ObsKind::Image, false),
+    (ObsKind::Keypoints, true),
+    (ObsKind::Image, true),
+];
+
 /// Chunks asked together, and the same asked alone.
 type Both = (Vec<Vec<f32>>, Vec<Vec<f32>>);
 
-fn policy(kind: ObsKind) -> Result<(DiffusionPolicy, VarMap), Box<dyn std::error::Error>> {
+/// The tiny U-Net policy, or with `transformer` the tiny Diffusion Transformer.
+fn policy(
+    kind: ObsKind,
+    transformer: bool,
+) -> Result<(DiffusionPolicy, VarMap), Box<dyn std::error::Error>> {
     let extra = match kind {
         ObsKind::Image => ("observation.image", 0.0, 1.0, 3),
         _ => ("observation.environment_state", 0.0, 512.0, 16),
@@ -30,10 +42,16 @@ fn policy(kind: ObsKind) -> Result<(DiffusionPolicy, VarMap), Box<dyn std::error
         ("action", 0.0, 512.0, 2),
         extra,
     ]);
-    let c = DiffusionConfig::cpu(kind).with_overrides(&serde_json::json!({
+    let mut c = DiffusionConfig::cpu(kind).with_overrides(&serde_json::json!({
         "down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8,
         "num_inference_steps": 4
     }))?;
+    if transformer {
+        c = c.with_overrides(&serde_json::json!({"transformer": {
+            "n_layer": 1, "n_head": 2, "n_emb": 8, "p_drop_emb": 0.0, "p_drop_attn": 0.0,
+            "causal_attn": true, "n_cond_layers": 0
+        }}))?;
+    }
     let vm = VarMap::new();
     let vb = seeded_var_builder(&vm, 3, DType::F32, &Device::Cpu);
     Ok((DiffusionPolicy::new(c, stats, vb)?, vm))
@@ -68,8 +86,8 @@ fn sampled(p: &DiffusionPolicy, image: bool, n: u64) -> Result<Both, Box<dyn std
 
 #[test]
 fn batched_sampling_equals_single_queries_bit_for_bit() -> R {
-    for kind in [ObsKind::Keypoints, ObsKind::Image] {
-        let (p, _vm) = policy(kind)?;
+    for (kind, dit) in KINDS {
+        let (p, _vm) = policy(kind, dit)?;
         let (together, alone) = sampled(&p, kind == ObsKind::Image, 5)?;
         assert_eq!(together.len(), 5);
         for (i, (a, b)) in together.iter().zip(&alone).enumerate() {
@@ -86,8 +104,8 @@ fn batched_sampling_equals_single_queries_bit_for_bit() -> R {
 
 #[test]
 fn batched_pgd_equals_single_attacks_bit_for_bit() -> R {
-    for kind in [ObsKind::Keypoints, ObsKind::Image] {
-        let (p, _vm) = policy(kind)?;
+    for (kind, dit) in KINDS {
+        let (p, _vm) = policy(kind, dit)?;
         let image = kind == ObsKind::Image;
         let cfg = PgdConfig {
             iterations: 3,

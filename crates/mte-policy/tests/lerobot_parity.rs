@@ -102,6 +102,7 @@ fn unet_outputs_match() {
             let t = case["timestep"].as_u64().expect("t") as usize;
             let emb: Vec<f32> = p
                 .unet()
+                .expect("U-Net")
                 .step_encoder(&[t], &Device::Cpu)
                 .expect("emb")
                 .flatten_all()
@@ -111,6 +112,7 @@ fn unet_outputs_match() {
             assert!(max_abs_diff(&emb, &floats(&case["timestep_embedding"])) < 1e-5);
             let out: Vec<f32> = p
                 .unet()
+                .expect("U-Net")
                 .forward(&x, &[t], &cond)
                 .expect("forward")
                 .flatten_all()
@@ -134,6 +136,7 @@ fn unet_outputs_match() {
             .collect();
         let out: Vec<f32> = p
             .unet()
+            .expect("U-Net")
             .forward(&x, &ts, &cond)
             .expect("forward")
             .flatten_all()

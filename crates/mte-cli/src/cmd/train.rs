@@ -42,13 +42,35 @@ fn preset_config(
     Ok(config)
 }
 
+/// The Diffusion Transformer's settings on top of `config`: Diffusion Policy's transformer
+/// (the `paper` preset's, or the `cpu` one), horizon 10 for images (its T_p = 10 experiment)
+/// and 16 for keypoints (its low-dim PushT config), 2 observations, 8 executed.
+fn with_transformer(
+    mut config: DiffusionConfig,
+    preset: PresetArg,
+    obs: ObsKind,
+) -> Result<DiffusionConfig> {
+    use mte_policy::config::TransformerConfig;
+    config.transformer = Some(match preset {
+        PresetArg::Paper => TransformerConfig::paper(),
+        PresetArg::Cpu => TransformerConfig::cpu(),
+    });
+    config.horizon = if obs == ObsKind::Image { 10 } else { 16 };
+    config.n_action_steps = 8;
+    config.validate().context("the transformer settings")?;
+    Ok(config)
+}
+
 /// `mte train diffusion`
 pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
     let obs = match a.obs {
         PolicyObsArg::Keypoints => ObsKind::Keypoints,
         PolicyObsArg::Image => ObsKind::Image,
     };
-    let config = preset_config(a.preset, obs, a.config.as_deref())?;
+    let mut config = preset_config(a.preset, obs, a.config.as_deref())?;
+    if a.backbone == crate::args::BackboneArg::Transformer {
+        config = with_transformer(config, a.preset, obs)?;
+    }
     let data = load_train_data(&a.data, &config)?;
     let tc = TrainConfig {
         steps: a.steps,

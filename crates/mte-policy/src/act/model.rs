@@ -14,135 +14,15 @@
 //! value. State-dict names are LeRobot's (`model.encoder.layers.0.self_attn.in_proj_weight`,
 //! ...), so its checkpoints load as they are.
 
-use std::cell::RefCell;
-
 use candle_core::{D, DType, Result, Tensor};
 use candle_nn::{Init, LayerNorm, Linear, Module, VarBuilder};
-use rand::Rng;
-use rand_chacha::ChaCha8Rng;
 
 use super::config::ActConfig;
-
-/// Training-time dropout drawing its masks from an injected stream.
-pub struct Dropout<'a> {
-    p: f64,
-    rng: &'a RefCell<ChaCha8Rng>,
-}
-
-impl<'a> Dropout<'a> {
-    /// Dropout with probability `p` from `rng`.
-    pub fn new(p: f64, rng: &'a RefCell<ChaCha8Rng>) -> Self {
-        Self { p, rng }
-    }
-
-    fn apply(&self, x: &Tensor) -> Result<Tensor> {
-        if self.p <= 0.0 {
-            return Ok(x.clone());
-        }
-        let keep = 1.0 / (1.0 - self.p);
-        let mut rng = self.rng.borrow_mut();
-        let mask: Vec<f32> = (0..x.elem_count())
-            .map(|_| {
-                if rng.random::<f64>() < self.p {
-                    0.0
-                } else {
-                    keep as f32
-                }
-            })
-            .collect();
-        x * Tensor::from_vec(mask, x.shape(), x.device())?
-    }
-}
-
-fn drop(x: &Tensor, d: Option<&Dropout<'_>>) -> Result<Tensor> {
-    match d {
-        Some(d) => d.apply(x),
-        None => Ok(x.clone()),
-    }
-}
-
-/// Xavier-uniform for a `(out, in)` matrix, as LeRobot initialises the transformer.
-fn xavier(out: usize, inp: usize) -> Init {
-    let bound = (6.0 / (out + inp) as f64).sqrt();
-    Init::Uniform {
-        lo: -bound,
-        up: bound,
-    }
-}
-
-fn linear_xavier(inp: usize, out: usize, vb: VarBuilder) -> Result<Linear> {
-    let w = vb.get_with_hints((out, inp), "weight", xavier(out, inp))?;
-    let bound = 1.0 / (inp as f64).sqrt();
-    let b = vb.get_with_hints(
-        out,
-        "bias",
-        Init::Uniform {
-            lo: -bound,
-            up: bound,
-        },
-    )?;
-    Ok(Linear::new(w, Some(b)))
-}
+pub use crate::attention::Dropout;
+use crate::attention::{Attention, drop, linear_xavier};
 
 fn layer_norm(d: usize, vb: VarBuilder) -> Result<LayerNorm> {
     candle_nn::layer_norm(d, candle_nn::LayerNormConfig::default(), vb)
-}
-
-/// PyTorch's `nn.MultiheadAttention` (no bias_kv, no zero_attn).
-struct Attention {
-    in_w: Tensor,
-    in_b: Tensor,
-    out: Linear,
-    heads: usize,
-}
-
-impl Attention {
-    fn new(d: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            in_w: vb.get_with_hints((3 * d, d), "in_proj_weight", xavier(3 * d, d))?,
-            in_b: vb.get_with_hints(3 * d, "in_proj_bias", Init::Const(0.0))?,
-            out: linear_xavier(d, d, vb.pp("out_proj"))?,
-            heads,
-        })
-    }
-
-    /// `x (B, L, D)` through rows `part` of the packed projection, split into heads
-    /// `(B, H, L, D / H)`.
-    fn project(&self, x: &Tensor, part: usize) -> Result<Tensor> {
-        let (b, l, d) = x.dims3()?;
-        let w = self.in_w.narrow(0, part * d, d)?;
-        let bias = self.in_b.narrow(0, part * d, d)?;
-        let y = x.broadcast_matmul(&w.t()?)?.broadcast_add(&bias)?;
-        y.reshape((b, l, self.heads, d / self.heads))?
-            .transpose(1, 2)?
-            .contiguous()
-    }
-
-    /// Attention of queries `q` over keys `k` and values `v` (all `(B, L, D)`); `pad`, if
-    /// given, is an additive `(B, Lk)` mask (0 or -inf) over the keys.
-    fn forward(
-        &self,
-        q: &Tensor,
-        k: &Tensor,
-        v: &Tensor,
-        pad: Option<&Tensor>,
-        d: Option<&Dropout<'_>>,
-    ) -> Result<Tensor> {
-        let (b, lq, dim) = q.dims3()?;
-        let scale = 1.0 / ((dim / self.heads) as f64).sqrt();
-        let (q, k, v) = (
-            (self.project(q, 0)? * scale)?,
-            self.project(k, 1)?,
-            self.project(v, 2)?,
-        );
-        let mut scores = q.matmul(&k.transpose(2, 3)?.contiguous()?)?;
-        if let Some(mask) = pad {
-            scores = scores.broadcast_add(&mask.unsqueeze(1)?.unsqueeze(1)?)?;
-        }
-        let weights = drop(&candle_nn::ops::softmax_last_dim(&scores)?, d)?;
-        let y = weights.matmul(&v)?.transpose(1, 2)?.reshape((b, lq, dim))?;
-        self.out.forward(&y)
-    }
 }
 
 /// The position-wise feed-forward block: `linear2(dropout(act(linear1(x))))`.

@@ -105,6 +105,11 @@ pub struct DiffusionConfig {
     pub do_mask_loss_for_padding: bool,
     /// Learning rate.
     pub optimizer_lr: f64,
+    /// mte extension: the noise network is Diffusion Policy's `TransformerForDiffusion` with
+    /// these settings instead of the U-Net (absent: the U-Net, LeRobot's only choice; not
+    /// written then, so U-Net configs stay LeRobot's schema).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub transformer: Option<TransformerConfig>,
     /// Adam betas.
     pub optimizer_betas: [f64; 2],
     /// Adam epsilon.
@@ -165,6 +170,81 @@ pub enum ObsKind {
 /// torchvision ResNet-18's stem width.
 pub const RESNET18_WIDTH: usize = 64;
 
+/// Diffusion Policy's `TransformerForDiffusion` settings (its field names; time and
+/// observations as conditioning tokens, as its image and low-dim PushT configs use).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransformerConfig {
+    /// Decoder layers.
+    pub n_layer: usize,
+    /// Attention heads; divides `n_emb`.
+    pub n_head: usize,
+    /// Token width (feed-forward: 4 x).
+    pub n_emb: usize,
+    /// Dropout on the token embeddings.
+    pub p_drop_emb: f64,
+    /// Dropout in attention and feed-forward blocks.
+    pub p_drop_attn: f64,
+    /// Causal action self-attention, and action token `t` sees condition token `s` only
+    /// when `t >= s - 1` (the time token always).
+    pub causal_attn: bool,
+    /// Transformer-encoder layers over the condition tokens (0: an MLP, Linear 4x, Mish,
+    /// Linear).
+    pub n_cond_layers: usize,
+}
+
+impl TransformerConfig {
+    /// Diffusion Policy's hybrid image config (PushT's T_p = 10 experiment): 8 layers, 4
+    /// heads, width 256, attention dropout 0.3, causal.
+    pub fn paper() -> Self {
+        Self {
+            n_layer: 8,
+            n_head: 4,
+            n_emb: 256,
+            p_drop_emb: 0.0,
+            p_drop_attn: 0.3,
+            causal_attn: true,
+            n_cond_layers: 0,
+        }
+    }
+
+    /// The `cpu` preset: 4 layers of width 64, 4 heads.
+    pub fn cpu() -> Self {
+        Self {
+            n_layer: 4,
+            n_emb: 64,
+            ..Self::paper()
+        }
+    }
+
+    fn validate(&self) -> Result<(), PolicyError> {
+        for (name, v) in [
+            ("transformer.n_layer", self.n_layer),
+            ("transformer.n_head", self.n_head),
+        ] {
+            if v == 0 {
+                return Err(config_err(name, v, ">= 1"));
+            }
+        }
+        if self.n_emb == 0 || !self.n_emb.is_multiple_of(2 * self.n_head) {
+            return Err(config_err(
+                "transformer.n_emb",
+                self.n_emb,
+                format!("a positive multiple of 2 n_head = {}", 2 * self.n_head),
+            ));
+        }
+        for (name, p) in [
+            ("transformer.p_drop_emb", self.p_drop_emb),
+            ("transformer.p_drop_attn", self.p_drop_attn),
+        ] {
+            if !(0.0..1.0).contains(&p) {
+                return Err(config_err(name, p, "a probability in [0, 1)"));
+            }
+        }
+        Ok(())
+    }
+}
+
 fn is_resnet18_width(w: &usize) -> bool {
     *w == RESNET18_WIDTH
 }
@@ -219,6 +299,7 @@ impl DiffusionConfig {
             num_inference_steps: None,
             do_mask_loss_for_padding: false,
             optimizer_lr: 1e-4,
+            transformer: None,
             optimizer_betas: [0.95, 0.999],
             optimizer_eps: 1e-8,
             optimizer_weight_decay: 1e-6,
@@ -434,7 +515,12 @@ impl DiffusionConfig {
         }
         // LeRobot's rule (stricter than the network needs, which is 2^(len - 1)); kept so
         // that every config we write loads in LeRobot.
-        let factor = 1usize << self.down_dims.len();
+        let factor = if let Some(t) = &self.transformer {
+            t.validate()?;
+            1
+        } else {
+            1usize << self.down_dims.len()
+        };
         if self.horizon == 0 || !self.horizon.is_multiple_of(factor) {
             return Err(config_err(
                 "horizon",

@@ -1,6 +1,7 @@
 //! Diffusion Policy (Chi et al., as LeRobot 0.4.4 implements it), one folder as
 //! candle-transformers and LeRobot keep one per model: the config schema and presets
-//! (`config`), the conditional U-Net 1D (`unet`), DDPM/DDIM schedulers (`scheduler`), the
+//! (`config`), the conditional U-Net 1D (`unet`) or the Diffusion Transformer's noise network
+//! (`transformer`), DDPM/DDIM schedulers (`scheduler`), the
 //! model with its observation encoding, sampling, loss and observation gradients (`model`),
 //! LeRobot-compatible checkpoints (`checkpoint`), training (`train`), the encoder's
 //! keypoint-regression warm start (`pretrain`), PGD on its loss (`attack`), and the physical
@@ -15,4 +16,5 @@ pub mod patch;
 pub mod pretrain;
 pub mod scheduler;
 pub mod train;
+pub mod transformer;
 pub mod unet;

@@ -16,6 +16,7 @@ use crate::normalize::{NormMode, Normalizer, Stats};
 pub use crate::policy::Observation;
 use crate::policy::{AttackablePolicy, AttackedQuery, ChunkPolicy, ObsNeeds, Query};
 use crate::scheduler::Scheduler;
+use crate::transformer::TransformerForDiffusion;
 use crate::unet::ConditionalUnet1d;
 use crate::vision::RgbEncoder;
 
@@ -35,11 +36,38 @@ pub struct ObsBatch {
 /// The statistics a policy needs, by feature name (LeRobot's names).
 pub type StatsMap = BTreeMap<String, Stats>;
 
+/// The noise network: LeRobot's conditional U-Net 1D, or Diffusion Policy's transformer
+/// (`DiffusionConfig::transformer`).
+pub enum NoiseNet {
+    /// The conditional U-Net 1D.
+    Unet(ConditionalUnet1d),
+    /// `TransformerForDiffusion`.
+    Transformer(TransformerForDiffusion),
+}
+
+impl NoiseNet {
+    /// The prediction for the noisy chunk `x (B, T, A)` at `timesteps` with the observation
+    /// features `cond (B, n_obs_steps * F)`, the products computed as `products` says (no
+    /// dropout: mte trains the transformer without it).
+    pub fn forward_with(
+        &self,
+        x: &Tensor,
+        timesteps: &[usize],
+        cond: &Tensor,
+        products: Products,
+    ) -> candle_core::Result<Tensor> {
+        match self {
+            NoiseNet::Unet(u) => u.forward_with(x, timesteps, cond, products),
+            NoiseNet::Transformer(t) => t.forward(x, timesteps, cond, None, products),
+        }
+    }
+}
+
 /// Diffusion Policy.
 pub struct DiffusionPolicy {
     config: DiffusionConfig,
     device: Device,
-    unet: ConditionalUnet1d,
+    net: NoiseNet,
     rgb: Option<RgbEncoder>,
     scheduler: Scheduler,
     state_norm: Normalizer,
@@ -90,7 +118,21 @@ impl DiffusionPolicy {
             None => None,
         };
         let per_step = s_dim + rgb.as_ref().map_or(0, RgbEncoder::feature_dim) + e_dim.unwrap_or(0);
-        let unet = ConditionalUnet1d::new(&config, per_step * config.n_obs_steps, vb.pp("unet"))?;
+        let net = match &config.transformer {
+            None => NoiseNet::Unet(ConditionalUnet1d::new(
+                &config,
+                per_step * config.n_obs_steps,
+                vb.pp("unet"),
+            )?),
+            Some(t) => NoiseNet::Transformer(TransformerForDiffusion::new(
+                t,
+                a_dim,
+                config.horizon,
+                config.n_obs_steps,
+                per_step,
+                vb.pp("transformer"),
+            )?),
+        };
         let scheduler = Scheduler::new(config.scheduler_config()?)?;
         let state_norm = norm_for(&config, &stats, "observation.state", "STATE", s_dim)?;
         let env_norm = match e_dim {
@@ -127,7 +169,7 @@ impl DiffusionPolicy {
         Ok(DiffusionPolicy {
             config,
             device,
-            unet,
+            net,
             rgb,
             scheduler,
             state_norm,
@@ -158,9 +200,17 @@ impl DiffusionPolicy {
         &self.scheduler
     }
 
-    /// The U-Net.
-    pub fn unet(&self) -> &ConditionalUnet1d {
-        &self.unet
+    /// The U-Net, when it is the noise network.
+    pub fn unet(&self) -> Option<&ConditionalUnet1d> {
+        match &self.net {
+            NoiseNet::Unet(u) => Some(u),
+            NoiseNet::Transformer(_) => None,
+        }
+    }
+
+    /// The noise network.
+    pub fn noise_net(&self) -> &NoiseNet {
+        &self.net
     }
 
     /// The action normaliser.
@@ -381,8 +431,8 @@ impl DiffusionPolicy {
         for t in self.scheduler.timesteps(n)? {
             let xt = Tensor::from_vec(x.clone(), shape.clone(), &self.device)?;
             let eps: Vec<f32> = self
-                .unet
-                .forward(&xt, &vec![t; b], cond)?
+                .net
+                .forward_with(&xt, &vec![t; b], cond, Products::PerSample)?
                 .flatten_all()?
                 .to_vec1()?;
             if self.scheduler.step_adds_noise(t, n)? {
@@ -530,7 +580,7 @@ impl DiffusionPolicy {
         let sa = Tensor::from_vec(sa, (b, 1, 1), &self.device)?.to_dtype(x0.dtype())?;
         let sb = Tensor::from_vec(sb, (b, 1, 1), &self.device)?.to_dtype(x0.dtype())?;
         let noisy = (x0.broadcast_mul(&sa)? + eps.broadcast_mul(&sb)?)?;
-        let pred = self.unet.forward_with(&noisy, timesteps, cond, products)?;
+        let pred = self.net.forward_with(&noisy, timesteps, cond, products)?;
         let target = match self.config.prediction_type.as_str() {
             "sample" => x0.clone(),
             _ => eps.clone(),

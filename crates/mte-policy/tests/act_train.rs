@@ -44,6 +44,10 @@ fn data() -> TrainData {
     }
 }
 
+fn seeded_rng(s: u64) -> rand_chacha::ChaCha8Rng {
+    <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(s)
+}
+
 fn tiny() -> ActConfig {
     ActConfig {
         chunk_size: 8,
@@ -102,6 +106,29 @@ fn trains_checkpoints_loads_and_resumes() {
             .predict_chunk(std::slice::from_ref(&obs), &mut rng)
             .expect("again")
     );
+
+    // Batched queries give each query's chunk alone, bit for bit.
+    let other = Observation {
+        state: vec![300.0, 120.0],
+        env_state: Some((0..16).map(|k| 310.0 - k as f32).collect()),
+        image: None,
+    };
+    let (h1, h2) = (std::slice::from_ref(&obs), std::slice::from_ref(&other));
+    let (mut r1, mut r2) = (seeded_rng(1), seeded_rng(2));
+    let mut qs = [
+        mte_policy::Query {
+            history: h1,
+            rng: &mut r1,
+        },
+        mte_policy::Query {
+            history: h2,
+            rng: &mut r2,
+        },
+    ];
+    let both = policy.predict_chunks(&mut qs).expect("batch");
+    assert_eq!(both[0], chunk);
+    assert_eq!(both[1], policy.predict_chunk(h2, &mut rng).expect("alone"));
+    assert_ne!(both[0], both[1]);
 
     // PGD on the keypoints: a zero radius gives the clean chunk bit for bit; a positive one
     // moves it, reproducibly from the attack stream.

@@ -19,7 +19,23 @@ use candle_nn::{Init, LayerNorm, Linear, Module, VarBuilder};
 
 use super::config::ActConfig;
 pub use crate::attention::Dropout;
-use crate::attention::{Attention, drop, linear_xavier};
+use crate::attention::{Attention, drop, linear_xavier, linear3};
+use crate::kernels::Products;
+
+/// How a pass computes its products: per sample (batch-invariant) at inference, fused in
+/// training (recognised by its dropout).
+fn products(d: Option<&Dropout<'_>>) -> Products {
+    if d.is_some() {
+        Products::Fused
+    } else {
+        Products::PerSample
+    }
+}
+
+/// `layer` on every row of `x (B, in)`.
+fn linear2(layer: &Linear, x: &Tensor, p: Products) -> Result<Tensor> {
+    linear3(layer, &x.unsqueeze(1)?, p)?.squeeze(1)
+}
 
 fn layer_norm(d: usize, vb: VarBuilder) -> Result<LayerNorm> {
     candle_nn::layer_norm(d, candle_nn::LayerNormConfig::default(), vb)
@@ -42,9 +58,10 @@ impl FeedForward {
     }
 
     fn forward(&self, x: &Tensor, d: Option<&Dropout<'_>>) -> Result<Tensor> {
-        let h = self.linear1.forward(x)?;
+        let p = products(d);
+        let h = linear3(&self.linear1, x, p)?;
         let h = if self.gelu { h.gelu_erf()? } else { h.relu()? };
-        self.linear2.forward(&drop(&h, d)?)
+        linear3(&self.linear2, &drop(&h, d)?, p)
     }
 }
 
@@ -88,7 +105,10 @@ impl EncoderLayer {
             x.clone()
         };
         let qk = add_pos(&x, pos)?;
-        x = (skip + drop(&self.attn.forward(&qk, &qk, &x, pad, d)?, d)?)?;
+        let a = self
+            .attn
+            .forward_masked(&qk, &qk, &x, None, pad, d, products(d))?;
+        x = (skip + drop(&a, d)?)?;
         if self.pre_norm {
             skip = x.clone();
             x = self.norm2.forward(&x)?;
@@ -190,12 +210,14 @@ impl DecoderLayer {
     fn forward(&self, x: &Tensor, m: &Memory<'_>, d: Option<&Dropout<'_>>) -> Result<Tensor> {
         let x = self.block(x, 0, d, |x| {
             let qk = x.broadcast_add(m.query_pos)?;
-            self.self_attn.forward(&qk, &qk, x, None, d)
+            self.self_attn
+                .forward_masked(&qk, &qk, x, None, None, d, products(d))
         })?;
         let key = m.out.broadcast_add(m.pos)?;
         let x = self.block(&x, 1, d, |x| {
             let q = x.broadcast_add(m.query_pos)?;
-            self.cross_attn.forward(&q, &key, m.out, None, d)
+            self.cross_attn
+                .forward_masked(&q, &key, m.out, None, None, d, products(d))
         })?;
         self.block(&x, 2, d, |x| self.ff.forward(x, d))
     }
@@ -406,13 +428,14 @@ impl ActNet {
                 Tensor::zeros((b, self.config.latent_dim), DType::F32, dev)?,
             ),
         };
-        let mut tokens = vec![self.latent_proj.forward(&z)?];
+        let p = products(d);
+        let mut tokens = vec![linear2(&self.latent_proj, &z, p)?];
         for (proj, input) in [(&self.state_proj, state), (&self.env_proj, env)] {
-            if let Some(p) = proj {
+            if let Some(proj) = proj {
                 let x = input.ok_or_else(|| {
                     candle_core::Error::Msg("a configured input is missing".into())
                 })?;
-                tokens.push(p.forward(x)?);
+                tokens.push(linear2(proj, x, p)?);
             }
         }
         let x = Tensor::stack(&tokens, 1)?;
@@ -431,7 +454,7 @@ impl ActNet {
         }
         let y = self.decoder_norm.forward(&y)?;
         Ok(ActOutput {
-            actions: self.head.forward(&y)?,
+            actions: linear3(&self.head, &y, p)?,
             latent,
         })
     }

@@ -128,13 +128,26 @@ impl ActPolicy {
 
     /// The unnormalised chunk `(chunk_size x A)` for one observation (latent zero).
     pub fn predict(&self, obs: &Observation) -> Result<Vec<f32>, PolicyError> {
-        let (state, env) = self.obs_tensors(&[obs])?;
+        Ok(self.predict_many(&[obs])?.remove(0))
+    }
+
+    /// The chunks of several observations in one pass; each is bit for bit what
+    /// [`ActPolicy::predict`] gives alone (the products run per sample at inference).
+    pub fn predict_many(&self, obs: &[&Observation]) -> Result<Vec<Vec<f32>>, PolicyError> {
+        let (state, env) = self.obs_tensors(obs)?;
         let out = self.net.forward(state.as_ref(), env.as_ref(), None, None)?;
-        let mut chunk = out.actions.squeeze(0)?.flatten_all()?.to_vec1::<f32>()?;
-        for row in chunk.chunks_mut(self.action_norm.dim()) {
-            self.action_norm.unnormalize(row);
-        }
-        Ok(chunk)
+        let n = self.config().chunk_size * self.action_norm.dim();
+        let flat = out.actions.flatten_all()?.to_vec1::<f32>()?;
+        Ok(flat
+            .chunks(n)
+            .map(|c| {
+                let mut chunk = c.to_vec();
+                for row in chunk.chunks_mut(self.action_norm.dim()) {
+                    self.action_norm.unnormalize(row);
+                }
+                chunk
+            })
+            .collect())
     }
 
     /// Loads a checkpoint directory (config, weights, processor statistics) on the CPU.
@@ -193,6 +206,21 @@ impl ChunkPolicy for ActPolicy {
     }
     fn attackable(&self) -> Option<&dyn AttackablePolicy> {
         Some(self)
+    }
+    /// All queries in one pass (ACT draws nothing from their streams).
+    fn predict_chunks(
+        &self,
+        queries: &mut [crate::policy::Query<'_>],
+    ) -> Result<Vec<Vec<f32>>, PolicyError> {
+        let obs = queries
+            .iter()
+            .map(|q| {
+                q.history
+                    .last()
+                    .ok_or_else(|| crate::error::config_err("history", 0, "1 observation"))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        self.predict_many(&obs)
     }
     /// ACT is deterministic at inference (latent zero): `rng` is not drawn from.
     fn predict_chunk(

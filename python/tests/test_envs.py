@@ -88,22 +88,26 @@ def test_vec_env_steps_like_single_envs():
 
 
 def test_gym_pusht_parity_when_installed():
-    """Against gym-pusht 0.1.8 itself (skipped where it is not installed): seeded resets equal,
-    and a recorded rollout of random actions within the bounds of mte-sim's parity tests."""
-    gym_pusht = pytest.importorskip("gym_pusht")  # noqa: F841 (registers gym_pusht/PushT-v0)
+    """Against gym-pusht 0.1.8 itself (installed by the pinned test requirements; skipped
+    where it is not): seeded resets equal, and the block's position under the same random
+    actions within the bounds mte-sim's parity tests use (crates/mte-sim/tests/parity.rs:
+    after 10 steps median <= 0.5 px and max <= 3 px over the episodes, after 20 the median
+    <= 0.5 px). Measured here: 0.10 / 2.11 px after 10 steps, median 0.19 px after 20. Two
+    physics engines drift apart after impacts, so later steps are not bounded."""
+    pytest.importorskip("gym_pusht")
+    after = {10: [], 20: []}
     for seed in range(10):
         theirs = gym.make("gym_pusht/PushT-v0", obs_type="state")
         ours = gym.make("mte/PushT-v0", obs_type="state")
         o_t, _ = theirs.reset(seed=seed)
         o_o, _ = ours.reset(seed=seed)
-        np.testing.assert_allclose(o_o, o_t, atol=1e-9, rtol=0)
+        np.testing.assert_array_equal(o_o, o_t)
         rng = np.random.default_rng(seed)
-        worst = 0.0
-        for _ in range(50):
+        for step in range(1, 21):
             a = rng.uniform(0, 512, 2).astype(np.float32)
-            o_t, r_t, *_ = theirs.step(a)
-            o_o, r_o, *_ = ours.step(a)
-            worst = max(worst, float(np.abs(o_o[:4] - o_t[:4]).max()))
-        # Two physics engines (rapier vs Chipmunk) drift apart over contacts; mte-sim's parity
-        # tests bound the divergence over short horizons by a few px.
-        assert worst < 10.0, f"seed {seed}: {worst:.2f} px apart after 50 steps"
+            o_t, *_ = theirs.step(a)
+            o_o, *_ = ours.step(a)
+            if step in after:
+                after[step].append(float(np.hypot(*(o_o[2:4] - o_t[2:4]))))
+    assert np.median(after[10]) <= 0.5 and max(after[10]) <= 3.0, after[10]
+    assert np.median(after[20]) <= 0.5, after[20]

@@ -16,7 +16,7 @@ the 512 x 512 workspace, angles radians.
 
 from __future__ import annotations
 
-from typing import Any, Dict, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -37,15 +37,20 @@ __all__ = [
 class TemporalEnsembler:
     """Streaming temporal ensembler of overlapping action chunks.
 
-    ``TemporalEnsembler(t_p, t_o, h, dim, aggregator="median")``: chunks of ``t_p`` rows of
-    ``dim`` actions, the policy seeing ``t_o`` observations and re-queried every ``h`` control
-    steps. ``insert(t, chunk)`` stores the chunk of the query fired at control time ``t``;
-    ``action(t)`` aggregates every stored chunk covering ``t``. Bad input raises
-    ``MteError`` (a ``ValueError``) naming the value and what was expected.
+    ``TemporalEnsembler(t_p, t_o, h, aggregator="median", dim=None)``: chunks of ``t_p`` rows
+    of ``dim`` actions (taken from the first chunk when not given), the policy seeing ``t_o``
+    observations and re-queried every ``h`` control steps. ``insert(t, chunk)`` stores the
+    chunk of the query fired at control time ``t``; ``action(t)`` aggregates every stored
+    chunk covering ``t``. Bad input raises ``MteError`` (a ``ValueError``) naming the value
+    and what was expected.
     """
 
-    def __init__(self, t_p: int, t_o: int, h: int, dim: int, aggregator: str = "median") -> None:
-        self._inner = _native.TemporalEnsembler(t_p, t_o, h, dim, aggregator)
+    def __init__(self, t_p: int, t_o: int, h: int, aggregator: str = "median", dim: Optional[int] = None) -> None:
+        self._args = (int(t_p), int(t_o), int(h))
+        self._aggregator = aggregator
+        # Validates the geometry and the aggregator now, whatever the dimension.
+        probe = _native.TemporalEnsembler(*self._args, int(dim) if dim is not None else 1, aggregator)
+        self._inner = probe if dim is not None else None
 
     def insert(self, t: int, chunk: Any, corrupted: bool = False) -> None:
         """Insert the ``(t_p, dim)`` chunk queried at control time ``t`` (copied as float32).
@@ -53,28 +58,38 @@ class TemporalEnsembler:
         ``corrupted`` marks a query known to be corrupted (it only feeds the step report).
         """
         array = np.ascontiguousarray(_to_numpy(chunk), dtype=np.float32)
+        if self._inner is None:
+            if array.ndim != 2:
+                raise MteError(f"chunk of shape {array.shape}: expected (t_p, dim)")
+            self._inner = _native.TemporalEnsembler(*self._args, array.shape[1], self._aggregator)
         self._inner.insert(int(t), array, bool(corrupted))
 
     def action(self, t: int) -> Tuple[np.ndarray, Dict[str, Any]]:
         """The aggregated action for control time ``t`` (float32, ``dim``) and the step report:
         ``m`` covering chunks, ``q`` flagged corrupted, ``excluded`` non-finite candidates,
         ``regime`` (``"2q<M"``, ``"2q=M"``, ``"2q>M"``), ``oldest_query``, ``newest_query``."""
+        if self._inner is None:
+            raise MteError(f"action({t}) before any chunk: expected insert(t, chunk) first")
         return self._inner.action(int(t))
 
     def reset(self) -> None:
         """Forget every chunk and the time cursor (a new episode)."""
-        self._inner.reset()
+        if self._inner is not None:
+            self._inner.reset()
 
     @property
     def aggregator(self) -> str:
-        return self._inner.aggregator
+        return self._inner.aggregator if self._inner is not None else self._aggregator
 
     @property
-    def dim(self) -> int:
-        return self._inner.dim
+    def dim(self) -> Optional[int]:
+        return self._inner.dim if self._inner is not None else None
 
     def __repr__(self) -> str:
-        return repr(self._inner)
+        if self._inner is not None:
+            return repr(self._inner)
+        t_p, t_o, h = self._args
+        return f"TemporalEnsembler(t_p={t_p}, t_o={t_o}, h={h}, aggregator='{self._aggregator}', dim=None)"
 
 
 def _to_numpy(x: Any) -> np.ndarray:

@@ -12,7 +12,7 @@ def ramp(t, t_p, dim, offset=0.0):
 
 
 def test_median_of_three_covering_chunks_ignores_one_outlier():
-    ens = mte.TemporalEnsembler(t_p=4, t_o=1, h=1, dim=2, aggregator="median")
+    ens = mte.TemporalEnsembler(t_p=4, t_o=1, h=1, aggregator="median")
     ens.insert(0, ramp(0, 4, 2))
     ens.insert(1, ramp(1, 4, 2, offset=1000.0))  # one corrupted prediction
     ens.insert(2, ramp(2, 4, 2))
@@ -24,7 +24,7 @@ def test_median_of_three_covering_chunks_ignores_one_outlier():
 
 
 def test_mean_is_dragged_by_the_same_outlier():
-    ens = mte.TemporalEnsembler(4, 1, 1, 2, aggregator="mean")
+    ens = mte.TemporalEnsembler(4, 1, 1, aggregator="mean", dim=2)
     for t, off in [(0, 0.0), (1, 1000.0), (2, 0.0)]:
         ens.insert(t, ramp(t, 4, 2, off))
     action, _ = ens.action(2)
@@ -32,7 +32,7 @@ def test_mean_is_dragged_by_the_same_outlier():
 
 
 def test_corrupted_flag_feeds_the_report():
-    ens = mte.TemporalEnsembler(4, 1, 1, 1)
+    ens = mte.TemporalEnsembler(4, 1, 1, dim=1)
     ens.insert(0, ramp(0, 4, 1), corrupted=True)
     ens.insert(1, ramp(1, 4, 1))
     _, report = ens.action(1)
@@ -42,7 +42,7 @@ def test_corrupted_flag_feeds_the_report():
 def test_every_aggregator_text_form_round_trips():
     for text in ["median", "ewm:0.01", "ewm-newest:0.01", "mean", "latest", "medoid", "trimmed-medoid:2",
                  "trimmed-mean:1", "recency-median:0.1", "geomedian:64", "median:lower"]:
-        ens = mte.TemporalEnsembler(8, 2, 2, 3, aggregator=text)
+        ens = mte.TemporalEnsembler(8, 2, 2, text)
         assert ens.aggregator.split(":")[0] == text.split(":")[0]
         ens.insert(0, np.zeros((8, 3)))
         action, _ = ens.action(0)
@@ -50,7 +50,7 @@ def test_every_aggregator_text_form_round_trips():
 
 
 def test_reset_starts_a_new_episode():
-    ens = mte.TemporalEnsembler(4, 1, 1, 1)
+    ens = mte.TemporalEnsembler(4, 1, 1, dim=1)
     ens.insert(5, ramp(5, 4, 1))
     ens.action(5)
     ens.reset()
@@ -62,11 +62,11 @@ def test_reset_starts_a_new_episode():
 @pytest.mark.parametrize(
     "call, fragment",
     [
-        (lambda: mte.TemporalEnsembler(4, 1, 1, 2, aggregator="mediann"), "mediann"),
-        (lambda: mte.TemporalEnsembler(4, 5, 1, 2), "t_o"),
-        (lambda: mte.TemporalEnsembler(4, 1, 1, 2).insert(0, np.zeros((3, 2))), "(4, 2)"),
-        (lambda: mte.TemporalEnsembler(4, 1, 1, 2).action(0), "0"),
-        (lambda: mte.TemporalEnsembler(4, 1, 1, 1).insert(0, np.array([[1.0], [np.nan], [1.0], [1.0]])) or None, None),
+        (lambda: mte.TemporalEnsembler(4, 1, 1, aggregator="mediann"), "mediann"),
+        (lambda: mte.TemporalEnsembler(4, 5, 1), "t_o"),
+        (lambda: mte.TemporalEnsembler(4, 1, 1, dim=2).insert(0, np.zeros((3, 2))), "(4, 2)"),
+        (lambda: mte.TemporalEnsembler(4, 1, 1, dim=2).action(0), "0"),
+        (lambda: mte.TemporalEnsembler(4, 1, 1, dim=1).insert(0, np.array([[1.0], [np.nan], [1.0], [1.0]])) or None, None),
     ],
 )
 def test_bad_input_raises_mte_error_naming_the_value(call, fragment):
@@ -81,9 +81,20 @@ def test_bad_input_raises_mte_error_naming_the_value(call, fragment):
 
 
 def test_nan_candidates_are_excluded_and_counted():
-    ens = mte.TemporalEnsembler(4, 1, 1, 1)
+    ens = mte.TemporalEnsembler(4, 1, 1, dim=1)
     ens.insert(0, np.array([[0.0], [np.nan], [2.0], [3.0]]))
     ens.insert(1, ramp(1, 4, 1))
     action, report = ens.action(1)
     assert report["m"] == 2 and report["excluded"] == 1
     assert action[0] == 1.0
+
+
+def test_dimension_comes_from_the_first_chunk_when_not_given():
+    ens = mte.TemporalEnsembler(4, 1, 1)
+    assert ens.dim is None
+    with pytest.raises(mte.MteError, match="before any chunk"):
+        ens.action(0)
+    ens.insert(0, ramp(0, 4, 3))
+    assert ens.dim == 3
+    action, _ = ens.action(0)
+    assert action.shape == (3,)

@@ -1,0 +1,42 @@
+"""tools/paired_cells.py (the cell-against-cell comparison of docs/experiments/patch_controls)
+on a tiny synthetic run directory: its differences, standard errors and Wilcoxon p-values."""
+
+import importlib.util
+import json
+import pathlib
+
+import numpy as np
+from scipy import stats
+
+TOOL = pathlib.Path(__file__).resolve().parents[2] / "tools/paired_cells.py"
+
+
+def load_tool():
+    spec = importlib.util.spec_from_file_location("paired_cells", TOOL)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def write_cell(run, cell, values):
+    lines = []
+    for arm, per_seed in values.items():
+        for seed, cov in per_seed.items():
+            lines.append(json.dumps({"kind": "episode", "cell": cell, "arm": arm, "seed": seed, "max_coverage": cov}))
+    (run / "cells" / f"{cell}.jsonl").write_text("\n".join(lines) + "\n")
+
+
+def test_paired_difference_and_wilcoxon(tmp_path, capsys):
+    (tmp_path / "cells").mkdir()
+    rng = np.random.default_rng(0)
+    a = {s: float(v) for s, v in zip(range(20), rng.uniform(0, 1, 20))}
+    b = {s: a[s] - 0.1 + 0.01 * s for s in a}
+    write_cell(tmp_path, "base", {"ewm": a})
+    write_cell(tmp_path, "other", {"ewm": b})
+    load_tool().main(str(tmp_path), "base", "other")
+    row = [line for line in capsys.readouterr().out.splitlines() if "`other`" in line][0]
+    d = np.array([b[s] - a[s] for s in range(20)])
+    p = stats.wilcoxon(list(b.values()), list(a.values())).pvalue
+    assert f"{d.mean():+.3f} ± {d.std(ddof=1) / np.sqrt(20):.3f}" in row
+    assert f"{p:.2g}" in row
+    assert "| 20 |" in row

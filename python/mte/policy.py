@@ -12,7 +12,7 @@ released while the policy runs.
 
 from __future__ import annotations
 
-from typing import Any, Dict, List
+from typing import Any, Dict
 
 import numpy as np
 
@@ -34,8 +34,3 @@ def observation(state: Any, env_state: Any = None, image: Any = None) -> Dict[st
     if image is not None:
         obs["image"] = np.ascontiguousarray(image, dtype=np.uint8)
     return obs
-
-
-def history(observations: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
-    """The list form ``predict`` takes (a convenience for symmetry)."""
-    return list(observations)

@@ -161,3 +161,29 @@ pub fn linear3(layer: &Linear, x: &Tensor, products: Products) -> Result<Tensor>
         None => Ok(y),
     }
 }
+
+/// The position-wise feed-forward block of both transformers:
+/// `linear2(dropout(act(linear1(x))))`, `act` ReLU or exact GELU, Xavier-initialised.
+pub struct FeedForward {
+    linear1: Linear,
+    linear2: Linear,
+    gelu: bool,
+}
+
+impl FeedForward {
+    /// Width `d` to `hidden` and back, weights under `vb` (`linear1`, `linear2`).
+    pub fn new(d: usize, hidden: usize, gelu: bool, vb: &VarBuilder) -> Result<Self> {
+        Ok(Self {
+            linear1: linear_xavier(d, hidden, vb.pp("linear1"))?,
+            linear2: linear_xavier(hidden, d, vb.pp("linear2"))?,
+            gelu,
+        })
+    }
+
+    /// The block on `x (B, L, d)`, products as `p` says.
+    pub fn forward(&self, x: &Tensor, d: Option<&Dropout<'_>>, p: Products) -> Result<Tensor> {
+        let h = linear3(&self.linear1, x, p)?;
+        let h = if self.gelu { h.gelu_erf()? } else { h.relu()? };
+        linear3(&self.linear2, &drop(&h, d)?, p)
+    }
+}

@@ -10,7 +10,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::{FeatureType, PolicyFeature};
+use crate::config::{FeatureType, PolicyFeature, action_dim_of, read_json};
 use crate::error::{PolicyError, config_err};
 use crate::normalize::NormMode;
 
@@ -235,14 +235,7 @@ impl ActConfig {
 
     /// The action dimension.
     pub fn action_dim(&self) -> Result<usize, PolicyError> {
-        match self.output_features.get("action") {
-            Some(f) if f.shape.len() == 1 && f.shape[0] > 0 => Ok(f.shape[0]),
-            other => Err(config_err(
-                "output_features",
-                other,
-                "an `action` feature of shape [d]",
-            )),
-        }
+        action_dim_of(&self.output_features)
     }
 
     /// The normalisation of a feature kind; a kind the mapping lacks is left as it is
@@ -257,14 +250,7 @@ impl ActConfig {
     /// Read a config file (LeRobot's `config.json`; missing fields take the paper preset's
     /// values).
     pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
-        let text = std::fs::read_to_string(path).map_err(|source| PolicyError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        let c: ActConfig = serde_json::from_str(&text).map_err(|source| PolicyError::Json {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let c: ActConfig = read_json(path)?;
         c.validate()?;
         Ok(c)
     }

@@ -19,7 +19,7 @@ use candle_nn::{Init, LayerNorm, Linear, Module, VarBuilder};
 
 use super::config::ActConfig;
 pub use crate::attention::Dropout;
-use crate::attention::{Attention, drop, linear_xavier, linear3};
+use crate::attention::{Attention, FeedForward, drop, linear3};
 use crate::kernels::Products;
 
 /// How a pass computes its products: per sample (batch-invariant) at inference, fused in
@@ -41,30 +41,6 @@ fn layer_norm(d: usize, vb: VarBuilder) -> Result<LayerNorm> {
     candle_nn::layer_norm(d, candle_nn::LayerNormConfig::default(), vb)
 }
 
-/// The position-wise feed-forward block: `linear2(dropout(act(linear1(x))))`.
-struct FeedForward {
-    linear1: Linear,
-    linear2: Linear,
-    gelu: bool,
-}
-
-impl FeedForward {
-    fn new(c: &ActConfig, vb: &VarBuilder) -> Result<Self> {
-        Ok(Self {
-            linear1: linear_xavier(c.dim_model, c.dim_feedforward, vb.pp("linear1"))?,
-            linear2: linear_xavier(c.dim_feedforward, c.dim_model, vb.pp("linear2"))?,
-            gelu: c.feedforward_activation == "gelu",
-        })
-    }
-
-    fn forward(&self, x: &Tensor, d: Option<&Dropout<'_>>) -> Result<Tensor> {
-        let p = products(d);
-        let h = linear3(&self.linear1, x, p)?;
-        let h = if self.gelu { h.gelu_erf()? } else { h.relu()? };
-        linear3(&self.linear2, &drop(&h, d)?, p)
-    }
-}
-
 fn add_pos(x: &Tensor, pos: Option<&Tensor>) -> Result<Tensor> {
     match pos {
         Some(p) => x.broadcast_add(p),
@@ -84,7 +60,12 @@ impl EncoderLayer {
     fn new(c: &ActConfig, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
             attn: Attention::new(c.dim_model, c.n_heads, vb.pp("self_attn"))?,
-            ff: FeedForward::new(c, &vb)?,
+            ff: FeedForward::new(
+                c.dim_model,
+                c.dim_feedforward,
+                c.feedforward_activation == "gelu",
+                &vb,
+            )?,
             norm1: layer_norm(c.dim_model, vb.pp("norm1"))?,
             norm2: layer_norm(c.dim_model, vb.pp("norm2"))?,
             pre_norm: c.pre_norm,
@@ -116,7 +97,7 @@ impl EncoderLayer {
             x = self.norm1.forward(&x)?;
             skip = x.clone();
         }
-        x = (skip + drop(&self.ff.forward(&x, d)?, d)?)?;
+        x = (skip + drop(&self.ff.forward(&x, d, products(d))?, d)?)?;
         if self.pre_norm {
             Ok(x)
         } else {
@@ -180,7 +161,12 @@ impl DecoderLayer {
         Ok(Self {
             self_attn: Attention::new(c.dim_model, c.n_heads, vb.pp("self_attn"))?,
             cross_attn: Attention::new(c.dim_model, c.n_heads, vb.pp("multihead_attn"))?,
-            ff: FeedForward::new(c, &vb)?,
+            ff: FeedForward::new(
+                c.dim_model,
+                c.dim_feedforward,
+                c.feedforward_activation == "gelu",
+                &vb,
+            )?,
             norms: [
                 layer_norm(c.dim_model, vb.pp("norm1"))?,
                 layer_norm(c.dim_model, vb.pp("norm2"))?,
@@ -219,7 +205,7 @@ impl DecoderLayer {
             self.cross_attn
                 .forward_masked(&q, &key, m.out, None, None, d, products(d))
         })?;
-        self.block(&x, 2, d, |x| self.ff.forward(x, d))
+        self.block(&x, 2, d, |x| self.ff.forward(x, d, products(d)))
     }
 }
 

@@ -10,7 +10,7 @@ use std::cell::RefCell;
 use std::path::Path;
 
 use candle_core::{DType, Device, Tensor, Var};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -262,9 +262,4 @@ fn resume(varmap: &VarMap, out: &Path) -> Result<usize, PolicyError> {
         var.set(t)?;
     }
     Ok(state.step)
-}
-
-/// A `VarBuilder` over `varmap` for a fresh policy (the seeded initialisation).
-pub fn seeded(varmap: &VarMap, seed: u64) -> VarBuilder<'static> {
-    crate::init::seeded_var_builder(varmap, seed, DType::F32, &Device::Cpu)
 }

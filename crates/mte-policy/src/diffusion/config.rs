@@ -245,6 +245,33 @@ impl TransformerConfig {
     }
 }
 
+/// The dimension of the `action` output feature (shape `[d]`), shared by every policy
+/// config.
+pub(crate) fn action_dim_of(
+    outputs: &BTreeMap<String, PolicyFeature>,
+) -> Result<usize, PolicyError> {
+    match outputs.get("action") {
+        Some(f) if f.shape.len() == 1 && f.shape[0] > 0 => Ok(f.shape[0]),
+        other => Err(config_err(
+            "output_features",
+            other,
+            "an `action` feature of shape [d]",
+        )),
+    }
+}
+
+/// A JSON file parsed as `T`, with the path in every error.
+pub(crate) fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, PolicyError> {
+    let text = std::fs::read_to_string(path).map_err(|source| PolicyError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    serde_json::from_str(&text).map_err(|source| PolicyError::Json {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
 fn is_resnet18_width(w: &usize) -> bool {
     *w == RESNET18_WIDTH
 }
@@ -330,15 +357,7 @@ impl DiffusionConfig {
     /// Read a config file (LeRobot's `config.json` or any subset of its fields: missing fields
     /// take the paper preset's values).
     pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
-        let text = std::fs::read_to_string(path).map_err(|source| PolicyError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        let c: DiffusionConfig =
-            serde_json::from_str(&text).map_err(|source| PolicyError::Json {
-                path: path.to_path_buf(),
-                source,
-            })?;
+        let c: DiffusionConfig = read_json(path)?;
         c.validate()?;
         Ok(c)
     }
@@ -370,14 +389,7 @@ impl DiffusionConfig {
 
     /// The action dimension.
     pub fn action_dim(&self) -> Result<usize, PolicyError> {
-        match self.output_features.get("action") {
-            Some(f) if f.shape.len() == 1 && f.shape[0] > 0 => Ok(f.shape[0]),
-            other => Err(config_err(
-                "output_features",
-                other,
-                "an `action` feature of shape [d]",
-            )),
-        }
+        action_dim_of(&self.output_features)
     }
 
     /// Dimension of a vector input by kind (None if absent).
@@ -497,6 +509,77 @@ impl DiffusionConfig {
         Ok(())
     }
 
+    /// The horizon against the noise network and `n_action_steps` against the horizon.
+    fn validate_horizon(&self) -> Result<(), PolicyError> {
+        // The U-Net: LeRobot's rule (stricter than the network needs, which is
+        // 2^(len - 1)); kept so that every config we write loads in LeRobot.
+        let (factor, why) = if let Some(t) = &self.transformer {
+            t.validate()?;
+            (1, "the transformer takes any horizon")
+        } else {
+            (1usize << self.down_dims.len(), "2^len(down_dims)")
+        };
+        if self.horizon == 0 || !self.horizon.is_multiple_of(factor) {
+            return Err(config_err(
+                "horizon",
+                self.horizon,
+                format!("a positive multiple of {factor} ({why})"),
+            ));
+        }
+        if self.n_action_steps == 0 || self.n_action_steps + self.n_obs_steps - 1 > self.horizon {
+            return Err(config_err(
+                "n_action_steps",
+                self.n_action_steps,
+                format!(
+                    "1..={} (horizon - n_obs_steps + 1)",
+                    self.horizon + 1 - self.n_obs_steps.min(self.horizon + 1)
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The image feature and its encoder settings, when the policy reads images.
+    fn validate_image(&self) -> Result<(), PolicyError> {
+        let Some([c, h, w]) = self.image_shape() else {
+            return Ok(());
+        };
+        if c != 3 {
+            return Err(config_err("input_features", [c, h, w], "3-channel images"));
+        }
+        if self.vision_backbone != "resnet18" {
+            return Err(config_err(
+                "vision_backbone",
+                &self.vision_backbone,
+                "\"resnet18\"",
+            ));
+        }
+        if self.vision_backbone_width < 16 || !self.vision_backbone_width.is_multiple_of(16) {
+            return Err(config_err(
+                "vision_backbone_width",
+                self.vision_backbone_width,
+                "a multiple of 16 (GroupNorm uses C / 16 groups), >= 16",
+            ));
+        }
+        if self.pretrained_backbone_weights.is_some() {
+            return Err(config_err(
+                "pretrained_backbone_weights",
+                &self.pretrained_backbone_weights,
+                "null (no weights can be downloaded; GroupNorm would ruin them anyway)",
+            ));
+        }
+        if let Some([ch, cw]) = self.crop_shape
+            && (ch > h || cw > w || ch < 32 || cw < 32)
+        {
+            return Err(config_err(
+                "crop_shape",
+                [ch, cw],
+                format!("within the {h}x{w} image, at least 32x32"),
+            ));
+        }
+        Ok(())
+    }
+
     /// Check every field; errors name the field and what was expected.
     pub fn validate(&self) -> Result<(), PolicyError> {
         if self.kind != "diffusion" {
@@ -513,31 +596,7 @@ impl DiffusionConfig {
                 "non-empty, all > 0",
             ));
         }
-        // LeRobot's rule (stricter than the network needs, which is 2^(len - 1)); kept so
-        // that every config we write loads in LeRobot.
-        let factor = if let Some(t) = &self.transformer {
-            t.validate()?;
-            1
-        } else {
-            1usize << self.down_dims.len()
-        };
-        if self.horizon == 0 || !self.horizon.is_multiple_of(factor) {
-            return Err(config_err(
-                "horizon",
-                self.horizon,
-                format!("a positive multiple of {factor} (2^len(down_dims))"),
-            ));
-        }
-        if self.n_action_steps == 0 || self.n_action_steps + self.n_obs_steps - 1 > self.horizon {
-            return Err(config_err(
-                "n_action_steps",
-                self.n_action_steps,
-                format!(
-                    "1..={} (horizon - n_obs_steps + 1)",
-                    self.horizon + 1 - self.n_obs_steps.min(self.horizon + 1)
-                ),
-            ));
-        }
+        self.validate_horizon()?;
         if self.kernel_size.is_multiple_of(2) {
             return Err(config_err("kernel_size", self.kernel_size, "an odd number"));
         }
@@ -577,41 +636,7 @@ impl DiffusionConfig {
                 "an image or an environment_state feature",
             ));
         }
-        if let Some([c, h, w]) = self.image_shape() {
-            if c != 3 {
-                return Err(config_err("input_features", [c, h, w], "3-channel images"));
-            }
-            if self.vision_backbone != "resnet18" {
-                return Err(config_err(
-                    "vision_backbone",
-                    &self.vision_backbone,
-                    "\"resnet18\"",
-                ));
-            }
-            if self.vision_backbone_width < 16 || !self.vision_backbone_width.is_multiple_of(16) {
-                return Err(config_err(
-                    "vision_backbone_width",
-                    self.vision_backbone_width,
-                    "a multiple of 16 (GroupNorm uses C / 16 groups), >= 16",
-                ));
-            }
-            if self.pretrained_backbone_weights.is_some() {
-                return Err(config_err(
-                    "pretrained_backbone_weights",
-                    &self.pretrained_backbone_weights,
-                    "null (no weights can be downloaded; GroupNorm would ruin them anyway)",
-                ));
-            }
-            if let Some([ch, cw]) = self.crop_shape
-                && (ch > h || cw > w || ch < 32 || cw < 32)
-            {
-                return Err(config_err(
-                    "crop_shape",
-                    [ch, cw],
-                    format!("within the {h}x{w} image, at least 32x32"),
-                ));
-            }
-        }
+        self.validate_image()?;
         self.action_dim()?;
         self.scheduler_config()?.validate()?;
         if self.inference_steps() == 0 || self.inference_steps() > self.num_train_timesteps {

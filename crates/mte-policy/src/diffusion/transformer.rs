@@ -19,32 +19,12 @@
 use candle_core::{Device, Result, Tensor};
 use candle_nn::{Init, LayerNorm, Linear, Module, VarBuilder};
 
-use crate::attention::{Attention, Dropout, drop, linear_xavier, linear3};
+use crate::attention::{Attention, Dropout, FeedForward, drop, linear3};
 use crate::config::TransformerConfig;
 use crate::kernels::Products;
 
 fn layer_norm(d: usize, vb: VarBuilder) -> Result<LayerNorm> {
     candle_nn::layer_norm(d, candle_nn::LayerNormConfig::default(), vb)
-}
-
-/// Pre-LN feed-forward: `linear2(dropout(gelu(linear1(x))))`.
-struct FeedForward {
-    linear1: Linear,
-    linear2: Linear,
-}
-
-impl FeedForward {
-    fn new(e: usize, vb: &VarBuilder) -> Result<Self> {
-        Ok(Self {
-            linear1: linear_xavier(e, 4 * e, vb.pp("linear1"))?,
-            linear2: linear_xavier(4 * e, e, vb.pp("linear2"))?,
-        })
-    }
-
-    fn forward(&self, x: &Tensor, d: Option<&Dropout<'_>>, p: Products) -> Result<Tensor> {
-        let h = linear3(&self.linear1, x, p)?.gelu_erf()?;
-        linear3(&self.linear2, &drop(&h, d)?, p)
-    }
 }
 
 /// `nn.TransformerEncoderLayer(norm_first=True, activation="gelu", batch_first=True)`.
@@ -59,7 +39,7 @@ impl EncoderLayer {
     fn new(c: &TransformerConfig, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
             attn: Attention::new(c.n_emb, c.n_head, vb.pp("self_attn"))?,
-            ff: FeedForward::new(c.n_emb, &vb)?,
+            ff: FeedForward::new(c.n_emb, 4 * c.n_emb, true, &vb)?,
             norm1: layer_norm(c.n_emb, vb.pp("norm1"))?,
             norm2: layer_norm(c.n_emb, vb.pp("norm2"))?,
         })
@@ -87,7 +67,7 @@ impl DecoderLayer {
         Ok(Self {
             self_attn: Attention::new(c.n_emb, c.n_head, vb.pp("self_attn"))?,
             cross_attn: Attention::new(c.n_emb, c.n_head, vb.pp("multihead_attn"))?,
-            ff: FeedForward::new(c.n_emb, &vb)?,
+            ff: FeedForward::new(c.n_emb, 4 * c.n_emb, true, &vb)?,
             norms: [
                 layer_norm(c.n_emb, vb.pp("norm1"))?,
                 layer_norm(c.n_emb, vb.pp("norm2"))?,

@@ -104,6 +104,11 @@ pub struct EvalPolicyArgs {
     /// Reset stream.
     #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
     pub stream: StreamArg,
+    /// Where the episodes run: `pusht` (native), or through the environment bridge
+    /// `gym:<module>/<EnvId>[?key=value&...]` or `robomimic:lift|can|square` (the worker's
+    /// Python: `MTE_PYTHON`, else the environment `tools/env-setup` made).
+    #[arg(long, default_value = "pusht")]
+    pub env: mte_eval::environment::EnvTarget,
     /// Control steps between queries.
     #[arg(long, default_value_t = 8, value_parser = at_least_one)]
     pub stride: usize,

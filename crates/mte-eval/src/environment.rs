@@ -24,6 +24,9 @@ pub enum EnvError {
     /// Rendering failed.
     #[error(transparent)]
     Render(#[from] mte_sim::render::RenderError),
+    /// An environment in a worker process failed (it crashed, hung, refused a request).
+    #[error(transparent)]
+    Bridge(#[from] crate::bridge::BridgeError),
     /// An action of the wrong length.
     #[error("action of {got} values: expected {expected} (the environment's action dimension)")]
     ActionShape {
@@ -56,6 +59,71 @@ pub trait Environment {
     fn observe(&mut self, needs: ObsNeeds) -> Result<Observation, EnvError>;
     /// Executes `action` (`d` values) for one control step.
     fn step(&mut self, action: &[f32]) -> Result<Outcome, EnvError>;
+}
+
+/// Where a run's episodes happen: native PushT, or a [`crate::bridge::Target`] in a worker
+/// process. Text form (CLI `--env`, sweep specs' `env`): `pusht`, `gym:<module>/<EnvId>`,
+/// `robomimic:<task>`, `toy:`.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Hash)]
+pub enum EnvTarget {
+    /// [`PushTEnv`], in this process.
+    #[default]
+    PushT,
+    /// An environment behind the bridge.
+    Bridge(crate::bridge::Target),
+}
+
+impl EnvTarget {
+    /// Whether this is native PushT (sweep specs leave it out).
+    pub fn is_pusht(&self) -> bool {
+        *self == EnvTarget::PushT
+    }
+
+    /// A fresh environment: native PushT reset from `stream`, or a worker started for a
+    /// policy that reads `needs`.
+    pub fn open(
+        &self,
+        stream: ResetStream,
+        needs: ObsNeeds,
+        options: &crate::bridge::BridgeOptions,
+    ) -> Result<Box<dyn Environment + Send>, EnvError> {
+        Ok(match self {
+            EnvTarget::PushT => Box::new(PushTEnv::new(stream)),
+            EnvTarget::Bridge(t) => Box::new(crate::bridge::BridgeEnv::spawn(t, needs, options)?),
+        })
+    }
+}
+
+impl std::str::FromStr for EnvTarget {
+    type Err = crate::bridge::TargetError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "pusht" => Ok(EnvTarget::PushT),
+            _ => s.parse().map(EnvTarget::Bridge),
+        }
+    }
+}
+
+impl std::fmt::Display for EnvTarget {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            EnvTarget::PushT => f.write_str("pusht"),
+            EnvTarget::Bridge(t) => t.fmt(f),
+        }
+    }
+}
+
+impl serde::Serialize for EnvTarget {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for EnvTarget {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        s.parse().map_err(serde::de::Error::custom)
+    }
 }
 
 /// PushT (`mte_sim`) as an [`Environment`]: gym-pusht's task, reset from `stream`.
@@ -147,6 +215,24 @@ impl Environment for PushTEnv {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn env_targets_round_trip_as_text() {
+        for s in [
+            "pusht",
+            "gym:gym_pusht/PushT-v0",
+            "robomimic:square",
+            "toy:",
+        ] {
+            let t: EnvTarget = s.parse().expect(s);
+            assert_eq!(t.to_string(), s);
+            let json = serde_json::to_string(&t).expect("json");
+            assert_eq!(serde_json::from_str::<EnvTarget>(&json).expect("back"), t);
+        }
+        assert!(EnvTarget::default().is_pusht());
+        let e = serde_json::from_str::<EnvTarget>("\"mujoco:x\"").expect_err("unknown");
+        assert!(e.to_string().contains("mujoco:x"), "{e}");
+    }
 
     #[test]
     fn pusht_through_the_seam_matches_the_simulator() {

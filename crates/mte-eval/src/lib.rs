@@ -25,6 +25,7 @@
 #![deny(missing_docs)]
 
 pub mod alignment;
+pub mod bridge;
 pub mod calibrate;
 pub mod corruption;
 pub mod dispersion;

@@ -36,6 +36,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::Reporter;
 use crate::corruption::{CorruptionSpec, Fault, Schedule, SensorFault};
+use crate::environment::{EnvTarget, Environment};
 use crate::label::{policy_label, slug};
 use crate::lockstep::run_lockstep;
 use crate::pusht::{EpisodeSpec, Execution, RolloutError, run_episode};
@@ -139,6 +140,12 @@ pub struct SweepSpec {
     /// scores go into the records, thresholds come from calibration afterwards.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub monitors: Vec<mte_ensemble::MonitorKind>,
+    /// Where the episodes run: `pusht` (native, the default), or a bridge target
+    /// (`gym:<module>/<EnvId>`, `robomimic:<task>`) with one worker process per episode of
+    /// a lockstep group (`mte_eval::bridge`; the worker's Python from `MTE_PYTHON` or
+    /// `tools/env-setup`).
+    #[serde(default, skip_serializing_if = "EnvTarget::is_pusht")]
+    pub env: EnvTarget,
 }
 
 fn default_max_steps() -> usize {
@@ -383,6 +390,10 @@ impl RunOptions {
     }
 }
 
+/// Largest lockstep group for bridged environments: each episode of a group has its own
+/// worker process (a robosuite worker with cameras holds a few hundred MB).
+pub const BRIDGE_GROUP: usize = 4;
+
 /// A loaded policy, or why it could not be loaded (its cells fail, not the sweep).
 type Loaded = Result<Box<dyn ChunkPolicy + Send + Sync>, String>;
 
@@ -425,6 +436,15 @@ pub fn run(
         .filter(|(i, _)| i % shard.count == shard.index)
         .map(|(_, c)| c)
         .collect();
+    let options = if spec.env.is_pusht() {
+        options
+    } else {
+        // One worker process per episode of a group: keep the groups small.
+        RunOptions {
+            batch: options.batch.min(BRIDGE_GROUP),
+            ..options
+        }
+    };
     let (tasks, skipped, writers) = plan(&cells, run, options)?;
     reporter.start(
         "episodes",
@@ -595,7 +615,9 @@ impl TaskContext<'_> {
                 failure = Some(e);
             }
         };
-        if batch > 1 {
+        if !self.spec.env.is_pusht() {
+            run_bridged(&self.spec.env, policy.as_ref(), &specs, &mut done);
+        } else if batch > 1 {
             run_lockstep(policy.as_ref(), &specs, &mut done);
         } else {
             for (i, spec) in specs.iter().enumerate() {
@@ -629,6 +651,41 @@ impl TaskContext<'_> {
         self.reporter.advance(1);
         Ok(())
     }
+}
+
+/// Runs `specs` in lockstep, each episode in its own worker for `target`; an episode whose
+/// worker does not start is recorded as failed with the reason.
+fn run_bridged(
+    target: &EnvTarget,
+    policy: &dyn ChunkPolicy,
+    specs: &[EpisodeSpec<'_>],
+    done: &mut crate::lockstep::OnDone<'_>,
+) {
+    let options = crate::bridge::BridgeOptions::default();
+    let mut envs = Vec::new();
+    let mut started = Vec::new();
+    for (i, spec) in specs.iter().enumerate() {
+        match target.open(spec.stream, spec.needs, &options) {
+            Ok(env) => {
+                envs.push(env);
+                started.push(i);
+            }
+            Err(e) => done(i, Err(e.into())),
+        }
+    }
+    let live: Vec<EpisodeSpec<'_>> = started.iter().map(|&i| specs[i].clone()).collect();
+    let mut quiet = vec![crate::episode::NoObserver; live.len()];
+    let envs: Vec<&mut dyn Environment> = envs
+        .iter_mut()
+        .map(|e| e.as_mut() as &mut dyn Environment)
+        .collect();
+    let observers: Vec<&mut dyn crate::episode::EpisodeObserver> = quiet
+        .iter_mut()
+        .map(|o| o as &mut dyn crate::episode::EpisodeObserver)
+        .collect();
+    crate::lockstep::run_lockstep_in(envs, policy, &live, observers, &mut |j, r| {
+        done(started[j], r)
+    });
 }
 
 /// Refuses a burst longer than its period: `q` corrupted queries of every `period` (default

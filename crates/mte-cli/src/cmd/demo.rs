@@ -53,6 +53,7 @@ pub fn run(cli: &Cli, a: &DemoArgs) -> Result<()> {
             schedules: Vec::new(),
         }],
         monitors: Vec::new(),
+        env: Default::default(),
     };
     spec.validate().context("check the demo flags")?;
     let t0 = std::time::Instant::now();

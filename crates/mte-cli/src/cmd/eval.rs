@@ -4,9 +4,10 @@ use std::io::Write as _;
 
 use anyhow::{Context, Result, ensure};
 use mte_eval::Reporter as _;
+use mte_eval::bridge::BridgeOptions;
 use mte_eval::corruption::CorruptionSpec;
 use mte_eval::dispersion::CandidateSpread;
-use mte_eval::pusht::{EpisodeSpec, Execution, run_episode_observed};
+use mte_eval::pusht::{EpisodeSpec, Execution, run_episode_in, run_episode_observed};
 
 use crate::args::{Cli, EvalPolicyArgs, Format};
 use crate::progress::Bar;
@@ -28,6 +29,14 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
     let mut out = Vec::new();
     let mut spread = CandidateSpread::default();
+    let mut bridged = match a.env.is_pusht() {
+        true => None,
+        false => Some(
+            a.env
+                .open(a.stream.into(), needs, &BridgeOptions::default())
+                .with_context(|| format!("starting the environment {}", a.env))?,
+        ),
+    };
     for i in 0..a.episodes {
         let seed = a.seed + i as u64;
         let spec = EpisodeSpec {
@@ -42,7 +51,12 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
             sampling: a.sampling.into(),
             monitors: &[],
         };
-        out.push(run_episode_observed(p.as_ref(), &spec, &mut spread)?);
+        let record = match bridged.as_mut() {
+            None => run_episode_observed(p.as_ref(), &spec, &mut spread)?,
+            // One worker serves every episode: each starts with a seeded reset.
+            Some(env) => run_episode_in(env.as_mut(), p.as_ref(), &spec, &mut spread)?,
+        };
+        out.push(record);
         bar.advance(1);
     }
     bar.finish();

@@ -1,0 +1,262 @@
+//! The bridge against its own worker, with the worker's pure-Python `toy:` target: needs a
+//! `python3` (>= 3.9) on PATH, or `MTE_PYTHON`, and nothing else.
+
+use std::time::Instant;
+
+use mte_policy::{ChunkPolicy, ObsNeeds, Observation, PolicyError};
+use rand::RngCore;
+
+use super::*;
+use crate::corruption::CorruptionSpec;
+use crate::pusht::{EpisodeSpec, Execution, RolloutError, run_episode_in};
+
+const STATE: ObsNeeds = ObsNeeds {
+    env_state: false,
+    image: None,
+};
+
+fn toy(options: &str, needs: ObsNeeds, timeout_s: f64) -> Result<BridgeEnv, EnvError> {
+    let target: Target = format!("toy:{options}").parse().expect("toy target");
+    let opts = BridgeOptions {
+        timeout_s,
+        ..BridgeOptions::default()
+    };
+    BridgeEnv::spawn(&target, needs, &opts)
+}
+
+#[test]
+fn targets_parse_and_print_back() {
+    for s in [
+        "toy:",
+        "toy:crash-at=3",
+        "gym:gym_pusht/PushT-v0",
+        "gym:gym_pusht/PushT-v0?obs_type=state&observation_width=96",
+        "gym:a.b/C-v1",
+        "robomimic:lift",
+        "robomimic:can",
+        "robomimic:square",
+    ] {
+        let t: Target = s.parse().unwrap_or_else(|e| panic!("{s}: {e}"));
+        assert_eq!(t.to_string(), s);
+    }
+    for bad in [
+        "pusht",
+        "gym:PushT-v0",
+        "gym:/X",
+        "gym:m/",
+        "robomimic:tool_hang",
+        "mujoco:x",
+    ] {
+        let e = bad.parse::<Target>().expect_err(bad);
+        assert!(e.to_string().contains(bad), "{e}");
+    }
+    assert_eq!(
+        Target::Robomimic(RobomimicTask::Can).setup_name(),
+        Some("robomimic")
+    );
+    assert_eq!(
+        "gym:m/E".parse::<Target>().map(|t| t.setup_name()),
+        Ok(None)
+    );
+}
+
+#[test]
+fn a_missing_setup_names_the_command() {
+    let opts = BridgeOptions {
+        python: None,
+        ..BridgeOptions::default()
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let e = opts
+        .interpreter_in(&Target::Robomimic(RobomimicTask::Lift), None, dir.path())
+        .expect_err("no environment there");
+    let text = e.to_string();
+    assert!(text.contains("tools/env-setup robomimic"), "{text}");
+    assert!(matches!(e, BridgeError::NotSetUp { .. }));
+    // MTE_PYTHON wins over the setup's environment; an explicit option over both.
+    let p = opts
+        .interpreter_in(
+            &Target::Robomimic(RobomimicTask::Lift),
+            Some("/x/python".into()),
+            dir.path(),
+        )
+        .expect("MTE_PYTHON");
+    assert_eq!(p, PathBuf::from("/x/python"));
+    let explicit = BridgeOptions {
+        python: Some("/y/python".into()),
+        ..opts
+    };
+    let p = explicit
+        .interpreter_in(
+            &Target::Robomimic(RobomimicTask::Lift),
+            Some("/x/python".into()),
+            dir.path(),
+        )
+        .expect("explicit");
+    assert_eq!(p, PathBuf::from("/y/python"));
+}
+
+#[test]
+fn the_toy_resets_observes_and_steps_through_the_worker() -> Result<(), EnvError> {
+    let needs = ObsNeeds {
+        env_state: true,
+        image: Some((3, 2)),
+    };
+    let mut env = toy("", needs, 30.0)?;
+    assert_eq!(env.action_dim(), 1);
+    let s0 = env.reset(3)?;
+    assert!(
+        (s0 - (1.0 - (3.0f64 / 7.0 - 0.9).abs())).abs() < 1e-12,
+        "{s0}"
+    );
+    let o = env.observe(needs)?;
+    assert_eq!(o.state, vec![(3.0f64 / 7.0) as f32]);
+    assert_eq!(o.env_state, Some(vec![0.9, 0.0]));
+    let level = (255.0 * (3.0f64 / 7.0)) as u8;
+    assert_eq!(o.image, Some(vec![level; 2 * 3 * 3]));
+    let out = env.step(&[0.9])?;
+    assert!(!out.success);
+    let x = (3.0f64 / 7.0) + 0.5 * (0.9 - 3.0f64 / 7.0);
+    assert!(
+        (out.score - (1.0 - (x - 0.9).abs())).abs() < 1e-6,
+        "{out:?}"
+    );
+    // A request of the wrong shape is refused before it reaches the worker.
+    assert!(matches!(
+        env.step(&[0.1, 0.2]),
+        Err(EnvError::ActionShape {
+            got: 2,
+            expected: 1
+        })
+    ));
+    // Observing with other needs than the worker was started for is a protocol error.
+    let e = env.observe(STATE).expect_err("other needs");
+    assert!(e.to_string().contains("started for"), "{e}");
+    // Seeded resets repeat.
+    env.reset(5)?;
+    let a = env.observe(needs)?;
+    env.step(&[0.2])?;
+    env.reset(5)?;
+    assert_eq!(env.observe(needs)?, a);
+    Ok(())
+}
+
+#[test]
+fn a_crashed_worker_is_a_typed_error_with_its_stderr() -> Result<(), EnvError> {
+    let mut env = toy("crash-at=2", STATE, 30.0)?;
+    env.reset(0)?;
+    env.step(&[0.5])?;
+    let e = env.step(&[0.5]).expect_err("crashes at step 2");
+    let text = e.to_string();
+    assert!(
+        matches!(e, EnvError::Bridge(BridgeError::Exited { .. })),
+        "{text}"
+    );
+    assert!(text.contains("crashing at step 2 as asked"), "{text}");
+    assert!(text.contains("exit status: 3"), "{text}");
+    // Every later call reports the failure instead of talking to a dead process.
+    let again = env.reset(0).expect_err("dead");
+    assert!(again.to_string().contains("failed earlier"), "{again}");
+    Ok(())
+}
+
+#[test]
+fn a_hung_worker_is_killed_after_the_timeout() -> Result<(), EnvError> {
+    let mut env = toy("hang-at=1", STATE, 1.0)?;
+    env.reset(0)?;
+    let t = Instant::now();
+    let e = env.step(&[0.5]).expect_err("hangs");
+    assert!(t.elapsed().as_secs_f64() < 30.0, "waited {:?}", t.elapsed());
+    let text = e.to_string();
+    assert!(
+        matches!(e, EnvError::Bridge(BridgeError::Hung { .. })),
+        "{text}"
+    );
+    assert!(text.contains("hanging at step 1 as asked"), "{text}");
+    Ok(())
+}
+
+#[test]
+fn a_refused_request_carries_the_workers_message() {
+    let target: Target = "gym:no_such_module_mte/X-v0".parse().expect("target");
+    let e = BridgeEnv::spawn(&target, STATE, &BridgeOptions::default()).expect_err("no module");
+    let text = e.to_string();
+    assert!(
+        matches!(e, EnvError::Bridge(BridgeError::Refused { .. })),
+        "{text}"
+    );
+    assert!(
+        text.contains("No module named") || text.contains("no_such_module_mte"),
+        "{text}"
+    );
+}
+
+/// Heads for 0.9 in every row of its chunk.
+struct GoToGoal;
+
+impl ChunkPolicy for GoToGoal {
+    fn horizon(&self) -> usize {
+        4
+    }
+    fn n_obs_steps(&self) -> usize {
+        1
+    }
+    fn action_dim(&self) -> usize {
+        1
+    }
+    fn needs(&self) -> ObsNeeds {
+        STATE
+    }
+    fn predict_chunk(
+        &self,
+        _: &[Observation],
+        _: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError> {
+        Ok(vec![0.9; 4])
+    }
+}
+
+fn episode(execution: Execution) -> EpisodeSpec<'static> {
+    EpisodeSpec {
+        needs: STATE,
+        seed: 1,
+        stream: Default::default(),
+        h: 2,
+        max_steps: 50,
+        execution,
+        corruption: &CorruptionSpec::CLEAN,
+        noise_seed: 0,
+        sampling: Default::default(),
+        monitors: &[],
+    }
+}
+
+#[test]
+fn the_runner_runs_episodes_in_a_worker_and_records_a_crash_as_a_failed_episode() {
+    let mut env = toy("", STATE, 30.0).expect("toy");
+    let arm = Execution::Ensemble("median".parse().expect("median"));
+    let rec = run_episode_in(
+        &mut env,
+        &GoToGoal,
+        &episode(arm),
+        &mut crate::episode::NoObserver,
+    )
+    .expect("episode");
+    assert!(rec.success, "{rec:?}");
+    assert!(rec.steps < 50 && rec.max_coverage > 0.99, "{rec:?}");
+    let mut env = toy("crash-at=3", STATE, 30.0).expect("toy");
+    let e = run_episode_in(
+        &mut env,
+        &GoToGoal,
+        &episode(arm),
+        &mut crate::episode::NoObserver,
+    )
+    .expect_err("crash");
+    assert!(
+        matches!(
+            e,
+            RolloutError::Env(EnvError::Bridge(BridgeError::Exited { .. }))
+        ),
+        "{e}"
+    );
+}

@@ -80,6 +80,53 @@ pub enum Command {
     /// Evaluate policies on PushT.
     #[command(subcommand)]
     Eval(EvalCommand),
+    /// Environments behind the bridge (gymnasium, robomimic): scripted experts, speed.
+    #[command(subcommand)]
+    Env(EnvCommand),
+}
+
+/// `mte env ...`
+#[derive(Debug, Subcommand)]
+pub enum EnvCommand {
+    /// Run a bridge target's scripted expert on seeded episodes and report its success.
+    Expert(EnvExpertArgs),
+    /// Control steps per second through the bridge (the expert's actions, or zeros).
+    Bench(EnvBenchArgs),
+}
+
+/// `mte env expert`
+#[derive(Debug, Args)]
+pub struct EnvExpertArgs {
+    /// The target: `robomimic:lift|can|square` (the worker's Python: `MTE_PYTHON`, else the
+    /// environment `tools/env-setup robomimic` made).
+    #[arg(long)]
+    pub env: mte_eval::bridge::Target,
+    /// First reset seed (Diffusion Policy's test seeds start at 100000).
+    #[arg(long, default_value_t = 100_000)]
+    pub seed: u64,
+    /// Episodes (seeds seed..seed+episodes).
+    #[arg(long, default_value_t = 50, value_parser = at_least_one)]
+    pub episodes: usize,
+    /// Step limit per episode (robomimic's ph horizon: 400).
+    #[arg(long, default_value_t = 400, value_parser = at_least_one)]
+    pub max_steps: usize,
+}
+
+/// `mte env bench`
+#[derive(Debug, Args)]
+pub struct EnvBenchArgs {
+    /// The target (as for `mte env expert`; `gym:` targets step with zero actions).
+    #[arg(long)]
+    pub env: mte_eval::bridge::Target,
+    /// Control steps to time (after one reset).
+    #[arg(long, default_value_t = 400, value_parser = at_least_one)]
+    pub steps: usize,
+    /// Also observe a camera frame of this size every step (`84x84`); state only otherwise.
+    #[arg(long, value_parser = size)]
+    pub image: Option<(usize, usize)>,
+    /// Reset seed.
+    #[arg(long, default_value_t = 100_000)]
+    pub seed: u64,
 }
 
 /// `mte eval ...`
@@ -987,4 +1034,18 @@ fn world_point(s: &str) -> Result<[f64; 2], String> {
             "{s:?}: expected two finite numbers \"x,y\" in world px"
         )),
     }
+}
+
+/// `WxH` in pixels.
+fn size(s: &str) -> Result<(usize, usize), String> {
+    let (w, h) = s
+        .split_once('x')
+        .ok_or_else(|| format!("{s:?}: expected WxH, e.g. 84x84"))?;
+    let parse = |v: &str| {
+        v.parse::<usize>()
+            .ok()
+            .filter(|&n| n > 0)
+            .ok_or_else(|| format!("{s:?}: expected WxH with positive integers"))
+    };
+    Ok((parse(w)?, parse(h)?))
 }

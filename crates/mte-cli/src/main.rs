@@ -12,8 +12,8 @@ use std::process::ExitCode;
 use clap::Parser;
 
 use crate::args::{
-    AttackCommand, Cli, Command, DataCommand, DefendCommand, EnsembleCommand, EvalCommand,
-    MonitorCommand, SimCommand, TrainCommand,
+    AttackCommand, Cli, Command, DataCommand, DefendCommand, EnsembleCommand, EnvCommand,
+    EvalCommand, MonitorCommand, SimCommand, TrainCommand,
 };
 
 fn main() -> ExitCode {
@@ -41,6 +41,8 @@ fn main() -> ExitCode {
         Command::Train(TrainCommand::Encoder(a)) => cmd::train::encoder(&cli, a),
         Command::Train(TrainCommand::Act(a)) => cmd::train::act(&cli, a),
         Command::Eval(EvalCommand::Policy(a)) => cmd::eval::policy(&cli, a),
+        Command::Env(EnvCommand::Expert(a)) => cmd::env::expert(&cli, a),
+        Command::Env(EnvCommand::Bench(a)) => cmd::env::bench(&cli, a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

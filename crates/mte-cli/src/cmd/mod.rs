@@ -3,6 +3,7 @@
 pub mod attack;
 pub mod data;
 pub mod demo;
+pub mod env;
 pub mod eval;
 pub mod film;
 pub mod media;

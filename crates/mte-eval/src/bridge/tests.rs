@@ -142,6 +142,24 @@ fn the_toy_resets_observes_and_steps_through_the_worker() -> Result<(), EnvError
 }
 
 #[test]
+fn the_toys_expert_solves_it_through_the_worker() -> Result<(), EnvError> {
+    let mut env = toy("", STATE, 30.0)?;
+    let ep = run_expert(&mut env, 2, 50, STATE)?;
+    assert!(
+        ep.success && ep.steps == ep.frames.len() && ep.steps < 50,
+        "{ep:?}"
+    );
+    assert!(
+        ep.frames
+            .iter()
+            .all(|(o, a)| o.state.len() == 1 && a == &[0.9])
+    );
+    // From x = 2/7, halving the distance to 0.9 each step: within 0.01 after 6 steps.
+    assert_eq!(ep.steps, 6);
+    Ok(())
+}
+
+#[test]
 fn a_crashed_worker_is_a_typed_error_with_its_stderr() -> Result<(), EnvError> {
     let mut env = toy("crash-at=2", STATE, 30.0)?;
     env.reset(0)?;

@@ -16,6 +16,8 @@ Requests (``"op"``) and their responses (``"ok": true`` plus):
 - ``reset`` ``{"seed": int}``: ``{"score": float}``.
 - ``observe``: arrays ``state`` (f32), ``env_state`` (f32, if needed), ``image`` (u8,
   ``(h, w, 3)``, if needed).
+- ``expert``: array ``action`` (f32), the task's scripted expert's action for the current
+  state (from ground-truth poses; robomimic tasks and the toy).
 - ``step`` with array ``action`` (f32, ``action_dim``): ``{"score": float, "success": bool}``.
 - ``close``: ``{}``; the worker exits.
 
@@ -161,6 +163,9 @@ class Toy:
             out["image"] = ("u8", [h, w, 3], bytes([level]) * (w * h * 3))
         return out
 
+    def expert_action(self):
+        return [0.9]
+
     def step(self, action):
         self.steps += 1
         if self.steps == self.crash_at:
@@ -234,6 +239,9 @@ class Gym:
             out["image"] = _image(np, image, self.needs["image"])
         return out
 
+    def expert_action(self):
+        raise WorkerError("gymnasium targets have no scripted expert")
+
     def step(self, action):
         a = self.np.asarray(action, dtype=self.np.float32).reshape(self.env.action_space.shape)
         self.obs, _, terminated, _, info = self.env.step(a)
@@ -256,7 +264,7 @@ class Robomimic:
         import robosuite as suite
         from robosuite.controllers import load_composite_controller_config
 
-        self.np, self.suite, self.needs = np, suite, needs
+        self.np, self.suite, self.needs, self.task = np, suite, needs, task
         image = needs.get("image")
         if image and tuple(image) != (84, 84):
             raise WorkerError(f"robomimic images are 84 x 84; the policy asks for {image}")
@@ -304,7 +312,13 @@ class Robomimic:
                 g.current_action = self.np.zeros(g.dof)
         self.np.random.seed(int(seed) % 2**32)
         self.obs = self.env.reset()
+        self.expert = EXPERTS[self.task](self)
         return float(self.env._check_success())
+
+    def expert_action(self):
+        if self.obs is None:
+            raise WorkerError("expert before reset")
+        return [float(v) for v in self.expert.act()]
 
     def observe(self):
         np, o = self.np, self.obs
@@ -322,6 +336,161 @@ class Robomimic:
         self.obs, _, _, _ = self.env.step(self.np.asarray(action, dtype=self.np.float64))
         success = bool(self.env._check_success())
         return float(success), success
+
+
+class Expert:
+    """A scripted expert from ground-truth poses: a list of phases, each a target for the
+    gripper site (m, world frame), a yaw change (rad), a gripper command (-1 open, +1
+    close), and a condition that ends it. Actions are OSC_POSE deltas, proportional to the
+    error and clipped to the controller's input range [-1, 1] (0.05 m and 0.5 rad per step
+    at full scale)."""
+
+    def __init__(self, env):
+        self.env, self.np = env, env.np
+        self.phase, self.count = 0, 0
+
+    def sim(self):
+        return self.env.env.sim
+
+    def eef(self):
+        return self.np.asarray(self.env.obs["robot0_eef_pos"], dtype=float)
+
+    def eef_yaw(self):
+        return _yaw(self.np, self.env.obs["robot0_eef_quat"])
+
+    def act(self):
+        np = self.np
+        while True:
+            plan = self.plan()
+            if plan is None:
+                return np.zeros(7)
+            target, yaw, grip, done = plan
+            if done or self.count > 120:
+                self.phase, self.count = self.phase + 1, 0
+                continue
+            break
+        self.count += 1
+        a = np.zeros(7)
+        a[:3] = np.clip((np.asarray(target) - self.eef()) / 0.05, -1, 1)
+        a[5] = np.clip(yaw / 0.5, -1, 1)
+        a[6] = grip
+        return a
+
+
+def _yaw(np, q):
+    x, y, z, w = q
+    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+
+def _wrap(np, a, period):
+    """`a` wrapped to [-period / 2, period / 2)."""
+    return float((a + period / 2) % period - period / 2)
+
+
+class LiftExpert(Expert):
+    """Above the cube, down, close, raise."""
+
+    def plan(self):
+        np, cube = self.np, self.np.asarray(self.env.obs["object-state"][:3], dtype=float)
+        near = lambda t, tol: np.linalg.norm(np.asarray(t) - self.eef()) < tol
+        p = self.phase
+        if p == 0:
+            t = cube + [0, 0, 0.06]
+            return t, 0.0, -1, near(t, 0.01)
+        if p == 1:
+            t = cube + [0, 0, -0.005]
+            return t, 0.0, -1, near(t, 0.008) or self.count > 40
+        if p == 2:
+            return cube + [0, 0, -0.005], 0.0, 1, self.count >= 12
+        if p == 3:
+            return np.array([cube[0], cube[1], 1.05]), 0.0, 1, False
+        return None
+
+
+class CanExpert(Expert):
+    """Above the can, down, close, up, over the can's bin region, down, open, away."""
+
+    def plan(self):
+        np, env = self.np, self.env.env
+        can = np.asarray(env.sim.data.body_xpos[env.obj_body_id["Can"]], dtype=float)
+        goal = np.asarray(env.target_bin_placements[env.object_to_id["can"]], dtype=float)
+        near = lambda t, tol: np.linalg.norm(np.asarray(t) - self.eef()) < tol
+        p = self.phase
+        if p == 0:
+            t = can + [0, 0, 0.08]
+            return t, 0.0, -1, near(t, 0.01)
+        if p == 1:
+            t = can + [0, 0, 0.0]
+            return t, 0.0, -1, near(t, 0.008) or self.count > 40
+        if p == 2:
+            return can, 0.0, 1, self.count >= 15
+        if p == 3:
+            t = np.array([can[0], can[1], 1.05])
+            return t, 0.0, 1, self.eef()[2] > 1.0
+        if p == 4:
+            t = np.array([goal[0], goal[1], 1.05])
+            return t, 0.0, 1, near(t, 0.015)
+        if p == 5:
+            t = np.array([goal[0], goal[1], 0.95])
+            return t, 0.0, 1, near(t, 0.015)
+        if p == 6:
+            return np.array([goal[0], goal[1], 0.95]), 0.0, -1, self.count >= 10
+        if p == 7:
+            return np.array([goal[0], goal[1], 1.1]), 0.0, -1, False
+        return None
+
+
+class SquareExpert(Expert):
+    """Turn the gripper along the handle, grasp it, raise the nut, turn it square to the
+    peg (the nut's yaw to a multiple of 90 degrees), bring its centre over the peg, lower
+    it down the peg, open."""
+
+    def poses(self):
+        np, env = self.np, self.env.env
+        nut = env.nuts[0]
+        body = env.obj_body_id[nut.name]
+        centre = np.asarray(env.sim.data.body_xpos[body], dtype=float)
+        w, x, y, z = env.sim.data.body_xquat[body]
+        yaw = _yaw(np, (x, y, z, w))
+        handle = np.asarray(env.sim.data.site_xpos[env.sim.model.site_name2id(nut.important_sites["handle"])], dtype=float)
+        peg = np.asarray(env.sim.data.body_xpos[env.peg1_body_id], dtype=float)
+        return centre, yaw, handle, peg
+
+    def plan(self):
+        np = self.np
+        centre, nut_yaw, handle, peg = self.poses()
+        near = lambda t, tol: np.linalg.norm(np.asarray(t) - self.eef()) < tol
+        turn_to_handle = _wrap(np, nut_yaw - self.eef_yaw(), np.pi)
+        square = -_wrap(np, nut_yaw, np.pi / 2)
+        # Where the gripper must be for the nut's centre to sit over the peg.
+        over = self.eef() + np.array([peg[0] - centre[0], peg[1] - centre[1], 0.0])
+        p = self.phase
+        if p == 0:
+            t = handle + [0, 0, 0.08]
+            return t, turn_to_handle, -1, near(t, 0.01) and abs(turn_to_handle) < 0.03
+        if p == 1:
+            t = handle + [0, 0, 0.0]
+            return t, turn_to_handle, -1, near(t, 0.006) or self.count > 40
+        if p == 2:
+            return handle, 0.0, 1, self.count >= 15
+        if p == 3:
+            t = np.array([handle[0], handle[1], 1.0])
+            return t, 0.0, 1, self.eef()[2] > 0.97
+        if p == 4:
+            t = np.array([over[0], over[1], 1.0])
+            done = np.hypot(*(peg[:2] - centre[:2])) < 0.004 and abs(square) < 0.02
+            return t, square, 1, done
+        if p == 5:
+            t = np.array([over[0], over[1], 0.86 + (self.eef()[2] - centre[2])])
+            return t, square, 1, centre[2] < 0.87 or self.count > 60
+        if p == 6:
+            return self.eef(), 0.0, -1, self.count >= 10
+        if p == 7:
+            return self.eef() + [0, 0, 0.05], 0.0, -1, False
+        return None
+
+
+EXPERTS = {"lift": LiftExpert, "can": CanExpert, "square": SquareExpert}
 
 
 def _literal(v):
@@ -392,6 +561,9 @@ def serve(inp, out):
             elif op == "observe":
                 obs = env.observe()
                 write_frame(out, {"ok": True}, [(k, *obs[k]) for k in ("state", "env_state", "image") if k in obs])
+            elif op == "expert":
+                action = env.expert_action()
+                write_frame(out, {"ok": True}, [("action", "f32", [len(action)], to_bytes("f32", action))])
             elif op == "step":
                 action = floats(arrays, "action")
                 if len(action) != env.action_dim:
@@ -399,7 +571,7 @@ def serve(inp, out):
                 score, success = env.step(action)
                 write_frame(out, {"ok": True, "score": float(score), "success": bool(success)})
             else:
-                raise WorkerError(f"unknown op {op!r}: expected hello, reset, observe, step or close")
+                raise WorkerError(f"unknown op {op!r}: expected hello, reset, observe, expert, step or close")
         except Exception as e:  # answered, logged; the runner decides
             import traceback
 

@@ -436,6 +436,16 @@ pub struct SimBenchArgs {
 /// `mte data generate`
 #[derive(Debug, Args)]
 pub struct DataGenerateArgs {
+    /// Where the demonstrations come from: `pusht` (the native simulator and its scripted
+    /// expert), or a bridge target with a scripted expert, `robomimic:lift|can|square`
+    /// (recorded: the 9-D proprioception, the task's object-state, 7-D OSC_POSE actions,
+    /// with `--obs pixels` the 84 x 84 agentview frame; give `--image-size 84` and
+    /// `--max-steps 400`; only successful episodes are kept unless `--keep-failures`).
+    #[arg(long, default_value = "pusht")]
+    pub env: mte_eval::environment::EnvTarget,
+    /// Bridge targets: keep failed expert episodes too.
+    #[arg(long)]
+    pub keep_failures: bool,
     /// Number of episodes.
     #[arg(long, default_value_t = 100, value_parser = at_least_one)]
     pub episodes: usize,

@@ -86,25 +86,64 @@ pub struct EpisodeMeta {
 }
 
 /// One frame's values, as produced by a generator. Optional features are `None` when not
-/// recorded (consistently for a whole dataset).
+/// recorded (consistently for a whole dataset); lengths follow the dataset's [`Layout`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct Frame {
-    /// Agent position (px).
-    pub state: [f32; 2],
-    /// Keypoints (px).
-    pub env_state: Option<[f32; 16]>,
+    /// Robot state (PushT: agent position, px).
+    pub state: Vec<f32>,
+    /// Environment state (PushT: keypoints, px).
+    pub env_state: Option<Vec<f32>>,
     /// gym-pusht state observation.
     pub pusht_state: Option<[f32; 5]>,
     /// Image, HWC u8.
     pub image: Option<Vec<u8>>,
-    /// Action (px).
-    pub action: [f32; 2],
+    /// Action (PushT: agent target, px).
+    pub action: Vec<f32>,
     /// Reward after the action.
     pub reward: f32,
     /// Episode over after the action.
     pub done: bool,
     /// Success after the action.
     pub success: bool,
+}
+
+/// What a dataset stores per frame: feature sizes and what they mean (written to
+/// `info.json`'s descriptions).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Layout {
+    /// `observation.state`: length and description.
+    pub state: (usize, String),
+    /// `observation.environment_state`, if stored: length and description.
+    pub env_state: Option<(usize, String)>,
+    /// Whether gym-pusht's 5-vector `observation.pusht_state` is stored.
+    pub pusht_state: bool,
+    /// `observation.image` (height, width), if stored.
+    pub image_hw: Option<(usize, usize)>,
+    /// `action`: length and description.
+    pub action: (usize, String),
+    /// What `next.reward` is.
+    pub reward: String,
+    /// What `next.success` is.
+    pub success: String,
+}
+
+impl Layout {
+    /// PushT's features (agent position, keypoints, targets in px).
+    pub fn pusht(
+        with_env_state: bool,
+        with_pusht_state: bool,
+        image_hw: Option<(usize, usize)>,
+    ) -> Self {
+        Self {
+            state: (2, "agent position [x, y] (px, y down)".into()),
+            env_state: with_env_state.then(|| (16, "8 block vertices, bar then stem (px)".into())),
+            pusht_state: with_pusht_state,
+            image_hw,
+            action: (2, "agent target [x, y] (px)".into()),
+            reward: "clip(coverage / 0.95, 0, 1) after the action".into(),
+            success: "coverage > 0.95 after the action".into(),
+        }
+    }
 }
 
 struct Column {
@@ -123,13 +162,11 @@ pub struct DatasetWriter {
     episodes: Vec<EpisodeMeta>,
     episodes_file: fs::File,
     frames: usize,
-    image_hw: Option<(usize, usize)>,
-    with_env_state: bool,
-    with_pusht_state: bool,
+    layout: Layout,
 }
 
 impl DatasetWriter {
-    /// Create `dir` (it must not already hold a dataset) for the given optional features.
+    /// Create `dir` (it must not already hold a dataset) for PushT's features.
     pub fn create(
         dir: &Path,
         fps: f64,
@@ -137,6 +174,15 @@ impl DatasetWriter {
         with_pusht_state: bool,
         image_hw: Option<(usize, usize)>,
     ) -> Result<Self, DataError> {
+        Self::create_with(
+            dir,
+            fps,
+            Layout::pusht(with_env_state, with_pusht_state, image_hw),
+        )
+    }
+
+    /// Create `dir` (it must not already hold a dataset) for the features of `layout`.
+    pub fn create_with(dir: &Path, fps: f64, layout: Layout) -> Result<Self, DataError> {
         if dir.join("info.json").exists() {
             return Err(DataError::Format {
                 path: dir.to_path_buf(),
@@ -154,28 +200,14 @@ impl DatasetWriter {
             episodes_file: fs::File::create(dir.join("episodes.jsonl"))
                 .map_err(|e| DataError::io(dir, e))?,
             frames: 0,
-            image_hw,
-            with_env_state,
-            with_pusht_state,
+            layout: layout.clone(),
         };
         use names::*;
-        w.column(
-            STATE,
-            DType::F32,
-            &[2],
-            true,
-            "agent position [x, y] (px, y down)",
-        )?;
-        if with_env_state {
-            w.column(
-                ENV_STATE,
-                DType::F32,
-                &[16],
-                true,
-                "8 block vertices, bar then stem (px)",
-            )?;
+        w.column(STATE, DType::F32, &[layout.state.0], true, &layout.state.1)?;
+        if let Some((n, d)) = &layout.env_state {
+            w.column(ENV_STATE, DType::F32, &[*n], true, d)?;
         }
-        if with_pusht_state {
+        if layout.pusht_state {
             w.column(
                 PUSHT_STATE,
                 DType::F32,
@@ -184,10 +216,16 @@ impl DatasetWriter {
                 "[agent x, agent y, block x, block y, block angle mod 2pi] (px, rad)",
             )?;
         }
-        if let Some((h, wd)) = image_hw {
+        if let Some((h, wd)) = layout.image_hw {
             w.column(IMAGE, DType::U8, &[h, wd, 3], true, "RGB frame, HWC u8")?;
         }
-        w.column(ACTION, DType::F32, &[2], true, "agent target [x, y] (px)")?;
+        w.column(
+            ACTION,
+            DType::F32,
+            &[layout.action.0],
+            true,
+            &layout.action.1,
+        )?;
         w.column(
             EPISODE_INDEX,
             DType::I64,
@@ -203,13 +241,7 @@ impl DatasetWriter {
             "index within the episode",
         )?;
         w.column(TIMESTAMP, DType::F32, &[], false, "frame_index / fps (s)")?;
-        w.column(
-            REWARD,
-            DType::F32,
-            &[],
-            false,
-            "clip(coverage / 0.95, 0, 1) after the action",
-        )?;
+        w.column(REWARD, DType::F32, &[], false, &layout.reward)?;
         w.column(
             DONE,
             DType::Bool,
@@ -217,13 +249,7 @@ impl DatasetWriter {
             false,
             "episode over after the action",
         )?;
-        w.column(
-            SUCCESS,
-            DType::Bool,
-            &[],
-            false,
-            "coverage > 0.95 after the action",
-        )?;
+        w.column(SUCCESS, DType::Bool, &[], false, &layout.success)?;
         Ok(w)
     }
 
@@ -267,10 +293,13 @@ impl DatasetWriter {
         frames: &[Frame],
     ) -> Result<(), DataError> {
         let index = self.episodes.len();
+        let l = &self.layout;
         for f in frames {
-            if f.env_state.is_some() != self.with_env_state
-                || f.pusht_state.is_some() != self.with_pusht_state
-                || f.image.as_ref().map(Vec::len) != self.image_hw.map(|(h, w)| h * w * 3)
+            if f.state.len() != l.state.0
+                || f.action.len() != l.action.0
+                || f.env_state.as_ref().map(Vec::len) != l.env_state.as_ref().map(|e| e.0)
+                || f.pusht_state.is_some() != l.pusht_state
+                || f.image.as_ref().map(Vec::len) != l.image_hw.map(|(h, w)| h * w * 3)
             {
                 return Err(DataError::Format {
                     path: self.dir.clone(),
@@ -285,7 +314,7 @@ impl DatasetWriter {
                 use names::*;
                 match col.name {
                     STATE => put_f32(col, &f.state)?,
-                    ENV_STATE => put_f32(col, f.env_state.as_ref().map_or(&[][..], |v| &v[..]))?,
+                    ENV_STATE => put_f32(col, f.env_state.as_deref().unwrap_or(&[]))?,
                     PUSHT_STATE => {
                         put_f32(col, f.pusht_state.as_ref().map_or(&[][..], |v| &v[..]))?
                     }

@@ -165,11 +165,14 @@ fn run_episode(config: &GenerateConfig, i: usize) -> Result<Episode, DataError> 
         max_coverage = max_coverage.max(info.coverage);
         let done = info.is_success || t + 1 == config.max_steps;
         frames.push(Frame {
-            state: [s[0] as f32, s[1] as f32],
-            env_state: config.obs.keypoints.then(|| kp.map(|v| v as f32)),
+            state: vec![s[0] as f32, s[1] as f32],
+            env_state: config
+                .obs
+                .keypoints
+                .then(|| kp.iter().map(|&v| v as f32).collect()),
             pusht_state: config.obs.state.then(|| s.map(|v| v as f32)),
             image,
-            action: [action[0] as f32, action[1] as f32],
+            action: vec![action[0] as f32, action[1] as f32],
             reward: info.reward as f32,
             done,
             success: info.is_success,

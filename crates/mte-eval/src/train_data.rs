@@ -46,6 +46,28 @@ pub struct Extra {
     pub keypoints: bool,
 }
 
+/// Sets the sizes of `config`'s vector features (`observation.state`,
+/// `observation.environment_state`, `action`) to the dataset's, so that one preset serves
+/// any task (PushT's 2-D state and action, robomimic's 9-D proprioception and 7-D actions).
+/// Image features and features the dataset lacks are left as they are (loading the arrays
+/// then names what is missing).
+pub fn fit_shapes(config: &mut DiffusionConfig, info: &mte_data::Info) {
+    let features = config
+        .input_features
+        .iter_mut()
+        .chain(config.output_features.iter_mut());
+    for (name, f) in features {
+        let vector = f.shape.len() == 1;
+        if let Some(d) = info
+            .features
+            .get(name)
+            .filter(|d| vector && d.shape.len() == 1)
+        {
+            f.shape = d.shape.clone();
+        }
+    }
+}
+
 /// Loads the dataset at `dir` and takes the arrays a policy of `config` needs.
 pub fn load(
     dir: &Path,
@@ -118,4 +140,53 @@ pub fn from_dataset(
         episode_success: ds.episodes.iter().map(|e| e.success).collect(),
         stats,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mte_data::Feature;
+    use mte_data::npy::DType;
+    use mte_policy::config::ObsKind;
+
+    #[test]
+    fn vector_features_take_the_datasets_sizes() {
+        let mut config = DiffusionConfig::cpu(ObsKind::Keypoints);
+        let feature = |n: usize| Feature {
+            dtype: DType::F32,
+            shape: vec![n],
+            file: String::new(),
+            description: String::new(),
+        };
+        let info = mte_data::Info {
+            format: mte_data::dataset::FORMAT.into(),
+            fps: 20.0,
+            episodes: 1,
+            frames: 1,
+            features: [
+                (names::STATE.to_string(), feature(9)),
+                (names::ENV_STATE.to_string(), feature(10)),
+                (names::ACTION.to_string(), feature(7)),
+            ]
+            .into_iter()
+            .collect(),
+            generator: serde_json::Value::Null,
+        };
+        fit_shapes(&mut config, &info);
+        assert_eq!(config.input_features[names::STATE].shape, vec![9]);
+        assert_eq!(config.input_features[names::ENV_STATE].shape, vec![10]);
+        assert_eq!(config.output_features[names::ACTION].shape, vec![7]);
+        config.validate().expect("still valid");
+        // Images keep their shape.
+        let mut image = DiffusionConfig::cpu(ObsKind::Image);
+        let before = image.input_features.clone();
+        fit_shapes(
+            &mut image,
+            &mte_data::Info {
+                features: Default::default(),
+                ..info
+            },
+        );
+        assert_eq!(image.input_features, before);
+    }
 }

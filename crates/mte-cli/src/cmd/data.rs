@@ -11,6 +11,9 @@ use crate::progress::Bar;
 
 /// `mte data generate`
 pub fn generate(cli: &Cli, a: &DataGenerateArgs) -> Result<()> {
+    if let mte_eval::environment::EnvTarget::Bridge(target) = &a.env {
+        return generate_bridged(cli, a, target);
+    }
     let config = GenerateConfig {
         episodes: a.episodes,
         seed: a.seed,
@@ -65,6 +68,59 @@ pub fn generate(cli: &Cli, a: &DataGenerateArgs) -> Result<()> {
                     info.episodes,
                     info.frames,
                     secs,
+                    a.out.display()
+                )?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// `mte data generate --env <bridge target>`: the worker's scripted expert, recorded.
+fn generate_bridged(
+    cli: &Cli,
+    a: &DataGenerateArgs,
+    target: &mte_eval::bridge::Target,
+) -> Result<()> {
+    use mte_eval::Reporter as _;
+    use mte_eval::bridge::expert::{DemoConfig, generate as record};
+    let config = DemoConfig {
+        target: target.clone(),
+        episodes: a.episodes,
+        first_seed: a.seed,
+        max_steps: a.max_steps,
+        image: a.obs.pixels.then_some((a.image_size, a.image_size)),
+        successes_only: !a.keep_failures,
+        workers: a
+            .threads
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, usize::from)),
+    };
+    let bar = Bar::new(!cli.no_progress && !cli.quiet);
+    bar.start("episodes", a.episodes as u64);
+    let t0 = std::time::Instant::now();
+    let info = record(
+        &config,
+        &a.out,
+        &mte_eval::bridge::BridgeOptions::default(),
+        &|_| bar.advance(1),
+    )
+    .with_context(|| format!("recording {target}'s expert into {}", a.out.display()))?;
+    bar.finish();
+    let secs = t0.elapsed().as_secs_f64();
+    let mut out = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(
+            out,
+            "{}",
+            serde_json::json!({ "out": a.out, "env": target.to_string(), "episodes": info.episodes, "frames": info.frames, "seconds": secs })
+        )?,
+        Format::Text => {
+            if !cli.quiet {
+                writeln!(
+                    out,
+                    "{} episodes of {target}'s expert ({} frames) in {secs:.0} s -> {}",
+                    info.episodes,
+                    info.frames,
                     a.out.display()
                 )?;
             }

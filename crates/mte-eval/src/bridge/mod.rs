@@ -18,7 +18,10 @@
 //! (`target/envs/<name>/bin/python` under the working directory; a missing one is
 //! [`BridgeError::NotSetUp`] naming the setup command), else `python3`.
 
+pub mod expert;
 pub mod frame;
+
+pub use expert::{ExpertEpisode, run_expert};
 
 use std::fmt;
 use std::io::{BufRead, BufReader, Read};
@@ -507,50 +510,6 @@ impl BridgeEnv {
             )),
         }
     }
-}
-
-/// One episode of a bridge target's scripted expert.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-pub struct ExpertEpisode {
-    /// Reset seed.
-    pub seed: u64,
-    /// Whether the task was solved (the episode ends there).
-    pub success: bool,
-    /// Control steps run.
-    pub steps: usize,
-    /// Largest score over the episode.
-    pub max_score: f64,
-    /// The observations (with `needs`) and the expert's actions, one per step.
-    #[serde(skip)]
-    pub frames: Vec<(Observation, Vec<f32>)>,
-}
-
-/// Runs the scripted expert of `env`'s target from reset seed `seed` for at most
-/// `max_steps`, recording what `needs` asks for at every step.
-pub fn run_expert(
-    env: &mut BridgeEnv,
-    seed: u64,
-    max_steps: usize,
-    needs: ObsNeeds,
-) -> Result<ExpertEpisode, EnvError> {
-    let mut max_score = env.reset(seed)?;
-    let mut frames = Vec::new();
-    let mut success = false;
-    while frames.len() < max_steps && !success {
-        let obs = env.observe(needs)?;
-        let action = env.expert_action()?;
-        let out = env.step(&action)?;
-        frames.push((obs, action));
-        max_score = max_score.max(out.score);
-        success = out.success;
-    }
-    Ok(ExpertEpisode {
-        seed,
-        success,
-        steps: frames.len(),
-        max_score,
-        frames,
-    })
 }
 
 impl Environment for BridgeEnv {

@@ -278,3 +278,54 @@ fn the_runner_runs_episodes_in_a_worker_and_records_a_crash_as_a_failed_episode(
         "{e}"
     );
 }
+
+#[test]
+fn expert_demonstrations_become_a_dataset_in_seed_order() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("demos");
+    let config = expert::DemoConfig {
+        target: "toy:".parse().expect("toy"),
+        episodes: 5,
+        first_seed: 10,
+        max_steps: 50,
+        image: None,
+        successes_only: true,
+        workers: 2,
+    };
+    let info =
+        expert::generate(&config, &out, &BridgeOptions::default(), &|_| {}).expect("generate");
+    assert_eq!(info.episodes, 5);
+    let ds = mte_data::Dataset::load(&out).expect("load");
+    let seeds: Vec<u64> = ds.episodes.iter().map(|e| e.seed).collect();
+    assert_eq!(
+        seeds,
+        vec![10, 11, 12, 13, 14],
+        "seed order whichever worker ran each"
+    );
+    assert!(ds.episodes.iter().all(|e| e.success));
+    assert_eq!(ds.info.features["observation.state"].shape, vec![1]);
+    assert_eq!(
+        ds.info.features["observation.environment_state"].shape,
+        vec![2]
+    );
+    assert_eq!(ds.info.features["action"].shape, vec![1]);
+    let actions = ds.feature("action").expect("action");
+    assert!(actions.iter().all(|&a| a == 0.9), "the toy's expert");
+    let frames: usize = ds.episodes.iter().map(|e| e.length).sum();
+    assert_eq!(actions.len(), frames);
+    // Only the last frame of an episode is done, with reward 1 (all succeeded).
+    let done = ds.feature("next.done").expect("done");
+    assert_eq!(done.iter().filter(|&&d| d == 1.0).count(), 5);
+    // Zero episodes is refused with the field named.
+    let e = expert::generate(
+        &expert::DemoConfig {
+            episodes: 0,
+            ..config
+        },
+        &dir.path().join("x"),
+        &BridgeOptions::default(),
+        &|_| {},
+    )
+    .expect_err("zero");
+    assert!(e.to_string().contains("`episodes` = 0"), "{e}");
+}

@@ -668,3 +668,88 @@ fn fixed_sampling_repeats_the_noise_stream_at_every_query() -> TestResult {
     );
     Ok(())
 }
+
+/// Heads for 0.9: the bridge's toy target (`toy:`) solves under it.
+struct TowardsGoal;
+
+impl ChunkPolicy for TowardsGoal {
+    fn horizon(&self) -> usize {
+        4
+    }
+    fn needs(&self) -> ObsNeeds {
+        ObsNeeds {
+            env_state: false,
+            image: None,
+        }
+    }
+    fn n_obs_steps(&self) -> usize {
+        1
+    }
+    fn action_dim(&self) -> usize {
+        1
+    }
+    fn predict_chunk(
+        &self,
+        _: &[Observation],
+        _: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError> {
+        Ok(vec![0.9; 4])
+    }
+}
+
+struct TowardsGoalSource;
+
+impl PolicySource for TowardsGoalSource {
+    fn load(&self, _: &str) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError> {
+        Ok(Box::new(TowardsGoal))
+    }
+}
+
+/// A sweep whose `env` is a bridge target runs its episodes in workers (the toy target
+/// needs only `python3`); a worker that crashes fails its episodes with the worker's
+/// message, and the sweep goes on and reports them.
+#[test]
+fn bridged_sweeps_run_in_workers_and_record_crashes_as_failed_episodes() -> TestResult {
+    for (env, crash) in [("toy:", false), ("toy:crash-at=3", true)] {
+        let text = format!(
+            "name = \"toy\"\npolicies = [\"toy\"]\narms = [\"ewm:0.01\", \"median\"]\nh = [2]\n\
+             seeds = [1, 2, 3]\nmax_steps = 30\nenv = \"{env}\"\n[[corruptions]]\nfault = {{ kind = \"none\" }}\nq = [0]\n"
+        );
+        let spec = SweepSpec::from_toml(&text)?;
+        assert_eq!(spec.env.to_string(), env);
+        let manifest = spec.manifest(None, 0);
+        let dir = tempfile::tempdir()?;
+        let rd = RunDir::create(&dir.path().join("run"), &spec.to_toml()?, &manifest, false)?;
+        let s = run(
+            &spec,
+            &manifest,
+            &rd,
+            Shard::default(),
+            RunOptions::new(2),
+            &TowardsGoalSource,
+            &Silent,
+        )?;
+        let lines = read_lines(&rd.cell_path(&spec.cells()[0].id))?;
+        assert_eq!(lines.len(), 6, "3 seeds x 2 arms, each recorded");
+        if crash {
+            assert_eq!((s.episodes_run, s.errors), (0, 6));
+            for l in &lines {
+                let Line::Error(e) = l else {
+                    panic!("an episode survived the crash: {l:?}")
+                };
+                assert!(
+                    e.error.contains("crashing at step 3 as asked"),
+                    "{}",
+                    e.error
+                );
+            }
+        } else {
+            assert_eq!((s.episodes_run, s.errors), (6, 0));
+            for l in &lines {
+                let Line::Episode(e) = l else { panic!("{l:?}") };
+                assert!(e.success, "{e:?}");
+            }
+        }
+    }
+    Ok(())
+}

@@ -4,7 +4,7 @@
 
 use std::cell::RefCell;
 
-use candle_core::{Result, Tensor};
+use candle_core::{D, Result, Tensor};
 
 use crate::kernels::Products;
 use crate::kernels::right_shared;
@@ -147,7 +147,10 @@ impl Attention {
         if let Some(mask) = pad {
             scores = scores.broadcast_add(&mask.unsqueeze(1)?.unsqueeze(1)?)?;
         }
-        let weights = drop(&candle_nn::ops::softmax_last_dim(&scores)?, d)?;
+        // The composed softmax: candle's fused `softmax_last_dim` has no backward pass, and
+        // through it no gradient would reach the queries and keys (their projections, the
+        // position embeddings, PGD's inputs).
+        let weights = drop(&candle_nn::ops::softmax(&scores, D::Minus1)?, d)?;
         let y = weights.matmul(&v)?.transpose(1, 2)?.reshape((b, lq, dim))?;
         linear3(&self.out, &y, products)
     }
@@ -159,6 +162,40 @@ pub fn linear3(layer: &Linear, x: &Tensor, products: Products) -> Result<Tensor>
     match layer.bias() {
         Some(b) => y.broadcast_add(b),
         None => Ok(y),
+    }
+}
+
+/// PyTorch's `nn.LayerNorm` (last dimension, eps 1e-5, weight and bias), written with
+/// differentiable tensor ops. candle-nn's `LayerNorm` takes a fused kernel for contiguous
+/// inputs, and that kernel has no backward pass: gradients stop at it silently, so a
+/// transformer built on it trains only the layers after its last norm and passes no
+/// gradient to its inputs (PGD). Rows are normalised independently (batch-invariant).
+#[derive(Clone, Debug)]
+pub struct LayerNorm {
+    weight: Tensor,
+    bias: Tensor,
+    eps: f64,
+}
+
+impl LayerNorm {
+    /// Width `d`, `weight` (ones) and `bias` (zeros) under `vb`.
+    pub fn new(d: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            weight: vb.get_with_hints(d, "weight", Init::Const(1.0))?,
+            bias: vb.get_with_hints(d, "bias", Init::Const(0.0))?,
+            eps: 1e-5,
+        })
+    }
+
+    /// `x (..., d)` normalised over its last dimension.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let d = x.dim(D::Minus1)? as f64;
+        let centred = x.broadcast_sub(&(x.sum_keepdim(D::Minus1)? / d)?)?;
+        let var = (centred.sqr()?.sum_keepdim(D::Minus1)? / d)?;
+        centred
+            .broadcast_div(&(var + self.eps)?.sqrt()?)?
+            .broadcast_mul(&self.weight)?
+            .broadcast_add(&self.bias)
     }
 }
 

@@ -15,11 +15,11 @@
 //! ...), so its checkpoints load as they are.
 
 use candle_core::{D, DType, Result, Tensor};
-use candle_nn::{Init, LayerNorm, Linear, Module, VarBuilder};
+use candle_nn::{Init, Linear, Module, VarBuilder};
 
 use super::config::ActConfig;
 pub use crate::attention::Dropout;
-use crate::attention::{Attention, FeedForward, drop, linear3};
+use crate::attention::{Attention, FeedForward, LayerNorm, drop, linear3};
 use crate::kernels::Products;
 
 /// How a pass computes its products: per sample (batch-invariant) at inference, fused in
@@ -38,7 +38,7 @@ fn linear2(layer: &Linear, x: &Tensor, p: Products) -> Result<Tensor> {
 }
 
 fn layer_norm(d: usize, vb: VarBuilder) -> Result<LayerNorm> {
-    candle_nn::layer_norm(d, candle_nn::LayerNormConfig::default(), vb)
+    LayerNorm::new(d, vb)
 }
 
 fn add_pos(x: &Tensor, pos: Option<&Tensor>) -> Result<Tensor> {

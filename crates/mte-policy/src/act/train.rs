@@ -263,3 +263,118 @@ fn resume(varmap: &VarMap, out: &Path) -> Result<usize, PolicyError> {
     }
     Ok(state.step)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 2-token-wide ACT on 12 frames whose actions follow the state.
+    fn tiny() -> (ActPolicy, VarMap, TrainData) {
+        let c = ActConfig {
+            chunk_size: 4,
+            n_action_steps: 4,
+            dim_model: 16,
+            n_heads: 2,
+            dim_feedforward: 32,
+            n_encoder_layers: 1,
+            n_vae_encoder_layers: 1,
+            latent_dim: 4,
+            dropout: 0.0,
+            ..ActConfig::cpu()
+        };
+        let n = 12usize;
+        let (mut state, mut env, mut action) = (Vec::new(), Vec::new(), Vec::new());
+        for f in 0..n {
+            let x = f as f32 * 30.0;
+            state.extend([x, 400.0 - x]);
+            env.extend((0..16).map(|k| x + k as f32));
+            action.extend([x + 5.0, 390.0 - x]);
+        }
+        let stat = |d: usize| crate::normalize::Stats {
+            min: vec![0.0; d],
+            max: vec![512.0; d],
+            mean: vec![200.0; d],
+            std: vec![100.0; d],
+        };
+        let data = TrainData {
+            state,
+            env_state: Some(env),
+            images: None,
+            action,
+            episode_lengths: vec![n],
+            episode_success: vec![true],
+            stats: [
+                ("observation.state".to_string(), stat(2)),
+                ("observation.environment_state".to_string(), stat(16)),
+                ("action".to_string(), stat(2)),
+            ]
+            .into_iter()
+            .collect(),
+        };
+        let varmap = VarMap::new();
+        let vb = crate::init::seeded_var_builder(&varmap, 1, DType::F32, &Device::Cpu);
+        let policy = ActPolicy::new(c, data.stats.clone(), vb).expect("policy");
+        (policy, varmap, data)
+    }
+
+    /// Every parameter gets the gradient that finite differences of the training loss give
+    /// (central differences, h = 1e-3 in f32: agreement within 5% or 1e-3). Guards against
+    /// ops without a backward pass, which cut gradients silently: candle-nn's fused LayerNorm
+    /// and softmax left all but the action head and the latent projection untrained.
+    #[test]
+    fn every_parameter_gets_its_finite_difference_gradient() {
+        let (policy, varmap, data) = tiny();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let b = batch(&policy, &data, &[0, 12], &[0, 3, 5, 9], &mut rng).expect("batch");
+        let loss_of = || {
+            let cell = RefCell::new(ChaCha8Rng::seed_from_u64(1));
+            let d = Dropout::new(0.0, &cell);
+            let vae = VaeInput {
+                actions: &b.actions,
+                is_pad: &b.is_pad,
+                eps: &b.eps,
+            };
+            let net = policy.net();
+            let o = net
+                .forward(b.state.as_ref(), b.env.as_ref(), Some(&vae), Some(&d))
+                .expect("forward");
+            net.loss(&o, &b.actions, &b.is_pad).expect("loss").0
+        };
+        let grads = loss_of().backward().expect("backward");
+        let vars = varmap.data().lock().expect("lock");
+        let mut bad = Vec::new();
+        for (name, var) in vars.iter() {
+            let Some(g) = grads.get(var.as_tensor()) else {
+                bad.push(format!("{name}: no gradient"));
+                continue;
+            };
+            let g = g
+                .flatten_all()
+                .and_then(|g| g.to_vec1::<f32>())
+                .expect("grad");
+            let w = var
+                .as_tensor()
+                .flatten_all()
+                .and_then(|w| w.to_vec1::<f32>())
+                .expect("w");
+            let i = w.len() / 2;
+            let at = |v: f32| {
+                let mut x = w.clone();
+                x[i] = v;
+                var.set(&Tensor::from_vec(x, var.as_tensor().shape(), &Device::Cpu).expect("t"))
+                    .expect("set");
+                f64::from(loss_of().to_scalar::<f32>().expect("scalar"))
+            };
+            let h = 1e-3f32;
+            let fd = (at(w[i] + h) - at(w[i] - h)) / (2.0 * f64::from(h));
+            at(w[i]);
+            let an = f64::from(g[i]);
+            if (fd - an).abs() > 0.05 * fd.abs().max(an.abs()) + 1e-3 {
+                bad.push(format!(
+                    "{name}[{i}]: finite differences {fd:+.5}, backward {an:+.5}"
+                ));
+            }
+        }
+        assert!(bad.is_empty(), "{bad:#?}");
+    }
+}

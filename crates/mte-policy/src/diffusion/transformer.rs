@@ -17,14 +17,14 @@
 //! Diffusion Policy builds its layers (`batch_first=True`).
 
 use candle_core::{Device, Result, Tensor};
-use candle_nn::{Init, LayerNorm, Linear, Module, VarBuilder};
+use candle_nn::{Init, Linear, VarBuilder};
 
-use crate::attention::{Attention, Dropout, FeedForward, drop, linear3};
+use crate::attention::{Attention, Dropout, FeedForward, LayerNorm, drop, linear3};
 use crate::config::TransformerConfig;
 use crate::kernels::Products;
 
 fn layer_norm(d: usize, vb: VarBuilder) -> Result<LayerNorm> {
-    candle_nn::layer_norm(d, candle_nn::LayerNormConfig::default(), vb)
+    LayerNorm::new(d, vb)
 }
 
 /// `nn.TransformerEncoderLayer(norm_first=True, activation="gelu", batch_first=True)`.
@@ -266,5 +266,55 @@ mod tests {
         let mem: Vec<Vec<f32>> = m.memory.expect("memory").to_vec2().expect("v");
         assert_eq!(mem[0], vec![0.0, 0.0, MASKED]);
         assert_eq!(mem[1], vec![0.0, 0.0, 0.0]);
+    }
+
+    /// Every parameter of the Diffusion Transformer receives a gradient in training (no op
+    /// without a backward pass on the way: candle-nn's fused LayerNorm and softmax had cut
+    /// all of them but the head's), and so do its inputs (PGD attacks through them).
+    #[test]
+    fn every_parameter_and_the_condition_get_gradients() {
+        let varmap = candle_nn::VarMap::new();
+        let vb = crate::init::seeded_var_builder(&varmap, 0, candle_core::DType::F32, &Device::Cpu);
+        let c = TransformerConfig {
+            n_layer: 2,
+            n_emb: 16,
+            n_head: 2,
+            n_cond_layers: 1,
+            ..TransformerConfig::cpu()
+        };
+        let net = TransformerForDiffusion::new(&c, 2, 4, 2, 3, vb).expect("net");
+        let x = Tensor::randn(0f32, 1.0, (2, 4, 2), &Device::Cpu).expect("x");
+        let cond = candle_core::Var::from_tensor(
+            &Tensor::randn(0f32, 1.0, (2, 6), &Device::Cpu).expect("cond"),
+        )
+        .expect("var");
+        let cell = std::cell::RefCell::new(
+            <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0),
+        );
+        let d = Dropout::new(0.0, &cell);
+        let y = net
+            .forward(&x, &[3, 7], cond.as_tensor(), Some(&d), Products::Fused)
+            .expect("forward");
+        let grads = y
+            .sqr()
+            .and_then(|v| v.sum_all())
+            .and_then(|l| l.backward())
+            .expect("backward");
+        let missing: Vec<String> = varmap
+            .data()
+            .lock()
+            .expect("lock")
+            .iter()
+            .filter(|(_, v)| grads.get(v.as_tensor()).is_none())
+            .map(|(n, _)| n.clone())
+            .collect();
+        assert!(missing.is_empty(), "no gradient for {missing:?}");
+        let g = grads.get(cond.as_tensor()).expect("condition gradient");
+        let norm = g
+            .sqr()
+            .and_then(|v| v.sum_all())
+            .and_then(|v| v.to_scalar::<f32>())
+            .expect("norm");
+        assert!(norm > 0.0, "the condition's gradient is zero");
     }
 }

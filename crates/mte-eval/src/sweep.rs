@@ -615,8 +615,8 @@ impl TaskContext<'_> {
                 failure = Some(e);
             }
         };
-        if !self.spec.env.is_pusht() {
-            run_bridged(&self.spec.env, policy.as_ref(), &specs, &mut done);
+        if let EnvTarget::Bridge(target) = &self.spec.env {
+            run_bridged(target, policy.as_ref(), &specs, &mut done);
         } else if batch > 1 {
             run_lockstep(policy.as_ref(), &specs, &mut done);
         } else {
@@ -653,19 +653,46 @@ impl TaskContext<'_> {
     }
 }
 
-/// Runs `specs` in lockstep, each episode in its own worker for `target`; an episode whose
-/// worker does not start is recorded as failed with the reason.
+thread_local! {
+    /// Bridge workers kept between the lockstep groups this thread runs: a robosuite worker
+    /// takes seconds to start, an episode as little as one. Seeded resets do not depend on
+    /// what a worker ran before, so reuse changes no record. They close when the sweep's
+    /// thread pool ends.
+    static WORKERS: std::cell::RefCell<Vec<crate::bridge::BridgeEnv>> =
+        const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// A worker for `target` observed with `needs`: one this thread kept, or a new one.
+fn take_worker(
+    target: &crate::bridge::Target,
+    needs: mte_policy::ObsNeeds,
+) -> Result<crate::bridge::BridgeEnv, crate::environment::EnvError> {
+    let kept = WORKERS.with(|w| {
+        let mut w = w.borrow_mut();
+        let i = w
+            .iter()
+            .position(|e| e.target() == target && e.needs() == needs)?;
+        Some(w.swap_remove(i))
+    });
+    match kept {
+        Some(env) => Ok(env),
+        None => crate::bridge::BridgeEnv::spawn(target, needs, &Default::default()),
+    }
+}
+
+/// Runs `specs` in lockstep, each episode in its own worker for `target` (kept for the
+/// thread's next group if it is still alive); an episode whose worker does not start is
+/// recorded as failed with the reason.
 fn run_bridged(
-    target: &EnvTarget,
+    target: &crate::bridge::Target,
     policy: &dyn ChunkPolicy,
     specs: &[EpisodeSpec<'_>],
     done: &mut crate::lockstep::OnDone<'_>,
 ) {
-    let options = crate::bridge::BridgeOptions::default();
     let mut envs = Vec::new();
     let mut started = Vec::new();
     for (i, spec) in specs.iter().enumerate() {
-        match target.open(spec.stream, spec.needs, &options) {
+        match take_worker(target, spec.needs) {
             Ok(env) => {
                 envs.push(env);
                 started.push(i);
@@ -675,16 +702,20 @@ fn run_bridged(
     }
     let live: Vec<EpisodeSpec<'_>> = started.iter().map(|&i| specs[i].clone()).collect();
     let mut quiet = vec![crate::episode::NoObserver; live.len()];
-    let envs: Vec<&mut dyn Environment> = envs
-        .iter_mut()
-        .map(|e| e.as_mut() as &mut dyn Environment)
-        .collect();
-    let observers: Vec<&mut dyn crate::episode::EpisodeObserver> = quiet
-        .iter_mut()
-        .map(|o| o as &mut dyn crate::episode::EpisodeObserver)
-        .collect();
-    crate::lockstep::run_lockstep_in(envs, policy, &live, observers, &mut |j, r| {
-        done(started[j], r)
+    {
+        let envs: Vec<&mut dyn Environment> =
+            envs.iter_mut().map(|e| e as &mut dyn Environment).collect();
+        let observers: Vec<&mut dyn crate::episode::EpisodeObserver> = quiet
+            .iter_mut()
+            .map(|o| o as &mut dyn crate::episode::EpisodeObserver)
+            .collect();
+        crate::lockstep::run_lockstep_in(envs, policy, &live, observers, &mut |j, r| {
+            done(started[j], r)
+        });
+    }
+    WORKERS.with(|w| {
+        w.borrow_mut()
+            .extend(envs.into_iter().filter(|e| e.is_alive()))
     });
 }
 

@@ -390,6 +390,17 @@ impl BridgeEnv {
         &self.target
     }
 
+    /// The observations this worker was started for.
+    pub fn needs(&self) -> ObsNeeds {
+        self.needs
+    }
+
+    /// Whether the worker can still serve requests (it has not crashed, hung or spoken out
+    /// of protocol). A refused request leaves it alive.
+    pub fn is_alive(&self) -> bool {
+        self.dead.is_none()
+    }
+
     /// The worker's stderr so far (its last few KB).
     pub fn stderr_tail(&self) -> String {
         self.stderr

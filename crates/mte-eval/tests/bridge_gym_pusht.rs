@@ -2,7 +2,7 @@
 //! (`gym:gym_pusht/PushT-v0`): seeded resets, observations and scores agree.
 //!
 //! Needs a Python with gym-pusht: `tools/python-tests` runs this test with `MTE_PYTHON` set
-//! to its pinned environment (`cargo test -p mte-eval --test bridge_gym_pusht -- --ignored`).
+//! to its pinned environment (`cargo test --workspace --test bridge_gym_pusht -- --ignored`).
 
 use mte_eval::bridge::{BridgeEnv, BridgeOptions, Target};
 use mte_eval::environment::{Environment, PushTEnv};

@@ -3,7 +3,7 @@
 //! lifts the cube.
 //!
 //! Needs the environment `tools/env-setup robomimic` makes: `tools/bridge-tests` runs these
-//! tests with `MTE_PYTHON` pointing at it (`cargo test -p mte-eval --test bridge_robomimic
+//! tests with `MTE_PYTHON` pointing at it (`cargo test --workspace --test bridge_robomimic
 //! -- --ignored`).
 
 use mte_eval::bridge::{BridgeEnv, BridgeOptions, Target, run_expert};

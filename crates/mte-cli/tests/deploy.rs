@@ -59,26 +59,24 @@ fn the_slurm_array_run_locally_then_merged_equals_the_unsharded_run() {
     let mte = env!("CARGO_BIN_EXE_mte");
     let sharded = dir.path().join("sharded");
     let n = 3;
-    for i in 0..n {
-        run(Command::new("bash")
-            .arg("deploy/slurm/sweep.sbatch")
+    // Array task `i` of `n`, as Slurm starts it: the script with its index in the environment.
+    let task = |i: usize| {
+        let mut c = Command::new("bash");
+        c.arg("deploy/slurm/sweep.sbatch")
             .arg(&spec)
             .arg(&sharded)
             .current_dir(root())
             .env("MTE", mte)
             .env("SLURM_ARRAY_TASK_ID", i.to_string())
             .env("SLURM_ARRAY_TASK_COUNT", n.to_string())
-            .env("SLURM_CPUS_PER_TASK", "1"));
+            .env("SLURM_CPUS_PER_TASK", "1");
+        c
+    };
+    for i in 0..n {
+        run(&mut task(i));
     }
     // A requeued task resumes its shard: nothing is run twice.
-    run(Command::new("bash")
-        .arg("deploy/slurm/sweep.sbatch")
-        .arg(&spec)
-        .arg(&sharded)
-        .current_dir(root())
-        .env("MTE", mte)
-        .env("SLURM_ARRAY_TASK_ID", "0")
-        .env("SLURM_ARRAY_TASK_COUNT", n.to_string()));
+    run(&mut task(0));
     run(Command::new("bash")
         .arg("deploy/slurm/merge.sbatch")
         .arg(&sharded)

@@ -29,14 +29,14 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
     let mut out = Vec::new();
     let mut spread = CandidateSpread::default();
-    let mut bridged = match a.env.is_pusht() {
-        true => None,
-        false => Some(
+    // Native PushT runs through `run_episode_observed`; any other target gets one worker.
+    let mut bridged = (!a.env.is_pusht())
+        .then(|| {
             a.env
                 .open(a.stream.into(), needs, &BridgeOptions::default())
-                .with_context(|| format!("starting the environment {}", a.env))?,
-        ),
-    };
+        })
+        .transpose()
+        .with_context(|| format!("starting the environment {}", a.env))?;
     for i in 0..a.episodes {
         let seed = a.seed + i as u64;
         let spec = EpisodeSpec {

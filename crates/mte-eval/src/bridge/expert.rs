@@ -6,8 +6,8 @@
 
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::mpsc::channel;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::mpsc::{Sender, channel};
 
 use mte_data::dataset::{DatasetWriter, EpisodeMeta, Frame, Info, Layout};
 use mte_policy::{ObsNeeds, Observation};
@@ -102,14 +102,15 @@ pub enum DemoError {
     },
 }
 
-/// The dataset layout of `target`'s observations.
+/// The dataset layout of `target`, its feature sizes those of `first` (an observation and
+/// the expert's action).
 fn layout(
     target: &Target,
-    state: usize,
-    env_state: usize,
+    first: &(Observation, Vec<f32>),
     image: Option<(usize, usize)>,
 ) -> Layout {
-    let (s, e, a) = match target {
+    let (o, a) = first;
+    let (sd, ed, ad) = match target {
         Target::Robomimic(_) => (
             "robot0_eef_pos (3, m), robot0_eef_quat (4, x y z w), robot0_gripper_qpos (2, m)",
             "the task's object-state (robosuite; object poses and their offsets to the gripper)",
@@ -122,11 +123,11 @@ fn layout(
         ),
     };
     Layout {
-        state: (state, s.into()),
-        env_state: Some((env_state, e.into())),
+        state: (o.state.len(), sd.into()),
+        env_state: Some((o.env_state.as_ref().map_or(0, Vec::len), ed.into())),
         pusht_state: false,
         image_hw: image.map(|(w, h)| (h, w)),
-        action: (0, a.into()),
+        action: (a.len(), ad.into()),
         reward: "1 once the task is solved after the action, else 0".into(),
         success: "the task is solved after the action (robosuite: _check_success())".into(),
     }
@@ -161,8 +162,135 @@ fn frames(ep: &ExpertEpisode) -> Vec<Frame> {
         .collect()
 }
 
+fn config_err(field: &'static str, value: impl ToString, expected: impl Into<String>) -> DemoError {
+    DemoError::Config {
+        field,
+        value: value.to_string(),
+        expected: expected.into(),
+    }
+}
+
+/// Seeds tried at most: `episodes`, or four times as many when only successes are kept.
+fn tries(config: &DemoConfig) -> usize {
+    if config.successes_only {
+        4 * config.episodes
+    } else {
+        config.episodes
+    }
+}
+
+/// What one worker thread does: start a worker, then run the expert on the next untried
+/// seed index until the seeds run out or `stop` is set, sending each result (a failed start
+/// is sent with index `usize::MAX`).
+fn work(
+    config: &DemoConfig,
+    options: &BridgeOptions,
+    next: &AtomicUsize,
+    stop: &AtomicBool,
+    tx: &Sender<(usize, Result<ExpertEpisode, EnvError>)>,
+) {
+    let needs = ObsNeeds {
+        env_state: true,
+        image: config.image,
+    };
+    let mut env = match BridgeEnv::spawn(&config.target, needs, options) {
+        Ok(e) => e,
+        Err(e) => {
+            let _ = tx.send((usize::MAX, Err(e)));
+            return;
+        }
+    };
+    loop {
+        let i = next.fetch_add(1, Ordering::SeqCst);
+        if i >= tries(config) || stop.load(Ordering::SeqCst) {
+            return;
+        }
+        let seed = config.first_seed + i as u64;
+        let r = run_expert(&mut env, seed, config.max_steps, needs);
+        let failed = r.is_err();
+        if tx.send((i, r)).is_err() || failed {
+            return;
+        }
+    }
+}
+
+/// Writes episodes in seed order as they arrive from the workers, whichever finished first;
+/// the dataset is created from the first kept episode's sizes.
+struct Recorder<'a> {
+    config: &'a DemoConfig,
+    out: &'a Path,
+    writer: Option<DatasetWriter>,
+    pending: BTreeMap<usize, ExpertEpisode>,
+    expected: usize,
+    kept: usize,
+}
+
+impl Recorder<'_> {
+    /// Takes episode `i` and writes every episode now in order; true once enough are kept.
+    fn accept(
+        &mut self,
+        i: usize,
+        ep: ExpertEpisode,
+        on_episode: &(dyn Fn(&EpisodeMeta) + Sync),
+    ) -> Result<bool, DemoError> {
+        let c = self.config;
+        self.pending.insert(i, ep);
+        while let Some(ep) = self.pending.remove(&self.expected) {
+            self.expected += 1;
+            if self.kept == c.episodes || (c.successes_only && !ep.success) {
+                continue;
+            }
+            let w = match self.writer.as_mut() {
+                Some(w) => w,
+                None => {
+                    let first = ep.frames.first().ok_or_else(|| {
+                        config_err("max_steps", c.max_steps, "room for at least one step")
+                    })?;
+                    let layout = layout(&c.target, first, c.image);
+                    self.writer.insert(DatasetWriter::create_with(
+                        self.out,
+                        fps(&c.target),
+                        layout,
+                    )?)
+                }
+            };
+            w.push_episode(ep.seed, ep.max_score, &frames(&ep))?;
+            self.kept += 1;
+            if let Some(meta) = w.episodes().last() {
+                on_episode(meta);
+            }
+        }
+        Ok(self.kept == c.episodes)
+    }
+
+    /// Finishes the dataset, or says why there are too few episodes.
+    fn finish(self) -> Result<Info, DemoError> {
+        let c = self.config;
+        let writer = self
+            .writer
+            .ok_or_else(|| config_err("episodes", c.episodes, "at least one recorded episode"))?;
+        if self.kept < c.episodes {
+            let tries = tries(c);
+            return Err(config_err(
+                "episodes",
+                c.episodes,
+                format!("as many successes within {tries} seeds (got {})", self.kept),
+            ));
+        }
+        let generator = serde_json::json!({
+            "target": c.target.to_string(),
+            "first_seed": c.first_seed,
+            "max_steps": c.max_steps,
+            "successes_only": c.successes_only,
+            "expert": "the bridge worker's scripted expert (ground-truth poses)",
+        });
+        Ok(writer.finish(generator)?)
+    }
+}
+
 /// Records `config.episodes` expert episodes of `config.target` into `out` (a new
-/// directory), calling `on_episode` as each is written (in seed order).
+/// directory), calling `on_episode` as each is written (in seed order): one worker process
+/// per thread, `config.workers` threads.
 pub fn generate(
     config: &DemoConfig,
     out: &Path,
@@ -175,122 +303,40 @@ pub fn generate(
         ("workers", config.workers),
     ] {
         if v == 0 {
-            return Err(DemoError::Config {
-                field,
-                value: "0".into(),
-                expected: ">= 1".into(),
-            });
+            return Err(config_err(field, 0, ">= 1"));
         }
     }
-    let needs = ObsNeeds {
-        env_state: true,
-        image: config.image,
-    };
-    let tries = if config.successes_only {
-        4 * config.episodes
-    } else {
-        config.episodes
-    };
-    let next = AtomicUsize::new(0);
-    let stop = AtomicUsize::new(0);
-    let (tx, rx) = channel::<(usize, Result<ExpertEpisode, EnvError>)>();
+    let (next, stop) = (AtomicUsize::new(0), AtomicBool::new(false));
+    let (tx, rx) = channel();
     std::thread::scope(|scope| -> Result<Info, DemoError> {
-        for _ in 0..config.workers.min(tries) {
+        for _ in 0..config.workers.min(tries(config)) {
             let tx = tx.clone();
             let (next, stop) = (&next, &stop);
-            scope.spawn(move || {
-                let mut env = match BridgeEnv::spawn(&config.target, needs, options) {
-                    Ok(e) => e,
-                    Err(e) => {
-                        let _ = tx.send((usize::MAX, Err(e)));
-                        return;
-                    }
-                };
-                loop {
-                    let i = next.fetch_add(1, Ordering::SeqCst);
-                    if i >= tries || stop.load(Ordering::SeqCst) > 0 {
-                        return;
-                    }
-                    let r = run_expert(
-                        &mut env,
-                        config.first_seed + i as u64,
-                        config.max_steps,
-                        needs,
-                    );
-                    let failed = r.is_err();
-                    if tx.send((i, r)).is_err() || failed {
-                        return;
-                    }
-                }
-            });
+            scope.spawn(move || work(config, options, next, stop, &tx));
         }
         drop(tx);
-        let mut writer: Option<DatasetWriter> = None;
-        let mut pending: BTreeMap<usize, ExpertEpisode> = BTreeMap::new();
-        let (mut expected, mut kept) = (0usize, 0usize);
+        let mut recorder = Recorder {
+            config,
+            out,
+            writer: None,
+            pending: BTreeMap::new(),
+            expected: 0,
+            kept: 0,
+        };
         for (i, r) in rx {
-            let ep = match r {
-                Ok(ep) => ep,
+            // A failure, or enough episodes, stops the workers at their next seed.
+            let done = r
+                .map_err(DemoError::from)
+                .and_then(|ep| recorder.accept(i, ep, on_episode));
+            match done {
+                Ok(false) => {}
+                Ok(true) => stop.store(true, Ordering::SeqCst),
                 Err(e) => {
-                    stop.store(1, Ordering::SeqCst);
-                    return Err(e.into());
-                }
-            };
-            pending.insert(i, ep);
-            // Write in seed order, so the dataset does not depend on which worker was faster.
-            while let Some(ep) = pending.remove(&expected) {
-                expected += 1;
-                if kept == config.episodes || (config.successes_only && !ep.success) {
-                    continue;
-                }
-                let w = match writer.as_mut() {
-                    Some(w) => w,
-                    None => {
-                        let (o, a): &(Observation, Vec<f32>) =
-                            ep.frames.first().ok_or_else(|| DemoError::Config {
-                                field: "max_steps",
-                                value: config.max_steps.to_string(),
-                                expected: "room for at least one step".into(),
-                            })?;
-                        let mut l = layout(
-                            &config.target,
-                            o.state.len(),
-                            o.env_state.as_ref().map_or(0, Vec::len),
-                            config.image,
-                        );
-                        l.action.0 = a.len();
-                        writer.insert(DatasetWriter::create_with(out, fps(&config.target), l)?)
-                    }
-                };
-                w.push_episode(ep.seed, ep.max_score, &frames(&ep))?;
-                kept += 1;
-                if let Some(meta) = w.episodes().last() {
-                    on_episode(meta);
-                }
-                if kept == config.episodes {
-                    stop.store(1, Ordering::SeqCst);
+                    stop.store(true, Ordering::SeqCst);
+                    return Err(e);
                 }
             }
         }
-        let writer = writer.ok_or_else(|| DemoError::Config {
-            field: "episodes",
-            value: config.episodes.to_string(),
-            expected: "at least one recorded episode".into(),
-        })?;
-        if kept < config.episodes {
-            return Err(DemoError::Config {
-                field: "episodes",
-                value: config.episodes.to_string(),
-                expected: format!("as many successes within {tries} seeds (got {kept})"),
-            });
-        }
-        let generator = serde_json::json!({
-            "target": config.target.to_string(),
-            "first_seed": config.first_seed,
-            "max_steps": config.max_steps,
-            "successes_only": config.successes_only,
-            "expert": "the bridge worker's scripted expert (ground-truth poses)",
-        });
-        Ok(writer.finish(generator)?)
+        recorder.finish()
     })
 }

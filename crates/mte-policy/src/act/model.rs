@@ -48,6 +48,16 @@ fn add_pos(x: &Tensor, pos: Option<&Tensor>) -> Result<Tensor> {
     }
 }
 
+/// A layer's feed-forward block as the config sets it (ReLU, or GELU).
+fn feed_forward(c: &ActConfig, vb: &VarBuilder) -> Result<FeedForward> {
+    FeedForward::new(
+        c.dim_model,
+        c.dim_feedforward,
+        c.feedforward_activation == "gelu",
+        vb,
+    )
+}
+
 struct EncoderLayer {
     attn: Attention,
     ff: FeedForward,
@@ -60,12 +70,7 @@ impl EncoderLayer {
     fn new(c: &ActConfig, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
             attn: Attention::new(c.dim_model, c.n_heads, vb.pp("self_attn"))?,
-            ff: FeedForward::new(
-                c.dim_model,
-                c.dim_feedforward,
-                c.feedforward_activation == "gelu",
-                &vb,
-            )?,
+            ff: feed_forward(c, &vb)?,
             norm1: layer_norm(c.dim_model, vb.pp("norm1"))?,
             norm2: layer_norm(c.dim_model, vb.pp("norm2"))?,
             pre_norm: c.pre_norm,
@@ -161,12 +166,7 @@ impl DecoderLayer {
         Ok(Self {
             self_attn: Attention::new(c.dim_model, c.n_heads, vb.pp("self_attn"))?,
             cross_attn: Attention::new(c.dim_model, c.n_heads, vb.pp("multihead_attn"))?,
-            ff: FeedForward::new(
-                c.dim_model,
-                c.dim_feedforward,
-                c.feedforward_activation == "gelu",
-                &vb,
-            )?,
+            ff: feed_forward(c, &vb)?,
             norms: [
                 layer_norm(c.dim_model, vb.pp("norm1"))?,
                 layer_norm(c.dim_model, vb.pp("norm2"))?,

@@ -302,7 +302,7 @@ impl fmt::Display for Fault {
         match self {
             Self::None => f.write_str("none"),
             Self::Sensor(s) => s.fmt(f),
-            Self::Query(QueryAttack::Pgd(c)) => write!(f, "pgd-{}", c.iterations),
+            Self::Query(QueryAttack::Pgd(c)) => write_pgd(f, c),
             Self::Candidates(CandidateCorruption::CommonMode {
                 magnitude,
                 angle_deg,
@@ -313,6 +313,26 @@ impl fmt::Display for Fault {
             },
         }
     }
+}
+
+/// `pgd-<iterations>`, then every parameter that differs from [`mte_policy::PgdConfig`]'s
+/// default (`-eps0.1-step0.00625-s8-rs`), so two attacks in one sweep never share a label.
+fn write_pgd(f: &mut fmt::Formatter<'_>, c: &mte_policy::PgdConfig) -> fmt::Result {
+    let d = mte_policy::PgdConfig::default();
+    write!(f, "pgd-{}", c.iterations)?;
+    if c.eps != d.eps {
+        write!(f, "-eps{}", c.eps)?;
+    }
+    if c.step != d.step {
+        write!(f, "-step{}", c.step)?;
+    }
+    if c.samples != d.samples {
+        write!(f, "-s{}", c.samples)?;
+    }
+    if c.random_start != d.random_start {
+        f.write_str(if c.random_start { "-rs" } else { "-no-rs" })?;
+    }
+    Ok(())
 }
 
 impl fmt::Display for SensorFault {
@@ -945,5 +965,30 @@ mod tests {
         assert_eq!(s.q(), 2);
         assert_eq!(CorruptionSpec::CLEAN.to_string(), "clean");
         assert_eq!(CorruptionSpec::CLEAN.q(), 0);
+    }
+
+    #[test]
+    fn pgd_labels_name_every_non_default_parameter() {
+        let pgd = |c: mte_policy::PgdConfig| Fault::Query(QueryAttack::Pgd(c)).to_string();
+        let d = mte_policy::PgdConfig::default();
+        assert_eq!(pgd(d.clone()), format!("pgd-{}", d.iterations));
+        let wide = mte_policy::PgdConfig {
+            eps: 0.1,
+            step: 0.00625,
+            iterations: 20,
+            ..d.clone()
+        };
+        assert_eq!(pgd(wide.clone()), "pgd-20-eps0.1-step0.00625");
+        let narrow = mte_policy::PgdConfig {
+            iterations: 20,
+            ..d.clone()
+        };
+        assert_ne!(pgd(wide), pgd(narrow));
+        let other = mte_policy::PgdConfig {
+            samples: 8,
+            random_start: !d.random_start,
+            ..d
+        };
+        assert!(pgd(other).ends_with("-s8-rs"));
     }
 }

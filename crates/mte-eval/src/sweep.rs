@@ -228,29 +228,60 @@ impl SweepSpec {
                 return Err(field("corruptions.q", "[]", "burst lengths or `schedules`"));
             }
         }
+        self.check_cell_ids()
+    }
+
+    /// Two different cells must not share an id: a run keeps one file per id, and
+    /// [`Self::cells`] keeps the first of identical ones.
+    fn check_cell_ids(&self) -> Result<(), SweepError> {
+        let mut seen: Vec<CellSpec> = Vec::new();
+        for c in self.cells_with_repeats() {
+            match seen.iter().find(|s| s.id == c.id) {
+                Some(s) if s.corruption != c.corruption || s.policy != c.policy => {
+                    return Err(field(
+                        "corruptions",
+                        &c.id,
+                        format!(
+                            "cells with different ids; `{}` and `{}` ({}, {}) both name it",
+                            s.corruption.fault, c.corruption.fault, s.policy, c.policy
+                        ),
+                    ));
+                }
+                Some(_) => {}
+                None => seen.push(c),
+            }
+        }
         Ok(())
     }
 
     /// The grid's cells, in a stable order (policy, h, corruption entry, q / schedule).
     pub fn cells(&self) -> Vec<CellSpec> {
+        let mut cells: Vec<CellSpec> = Vec::new();
+        for c in self.cells_with_repeats() {
+            if !cells.iter().any(|k| k.id == c.id) {
+                cells.push(c);
+            }
+        }
+        cells
+    }
+
+    /// Every (policy, h, corruption) of the grid in order, repeats included.
+    fn cells_with_repeats(&self) -> Vec<CellSpec> {
         let seeds = self.seeds.to_vec();
         let mut cells: Vec<CellSpec> = Vec::new();
         for p in &self.policies {
             let label = policy_label(p).to_string();
             for &h in &self.h {
                 let mut push = |corruption: CorruptionSpec| {
-                    let id = slug(&format!("{label}-{corruption}-h{h}"));
-                    if !cells.iter().any(|c| c.id == id) {
-                        cells.push(CellSpec {
-                            id,
-                            policy: p.clone(),
-                            corruption,
-                            h,
-                            arms: self.arms.clone(),
-                            seeds: seeds.clone(),
-                            max_steps: self.max_steps,
-                        });
-                    }
+                    cells.push(CellSpec {
+                        id: slug(&format!("{label}-{corruption}-h{h}")),
+                        policy: p.clone(),
+                        corruption,
+                        h,
+                        arms: self.arms.clone(),
+                        seeds: seeds.clone(),
+                        max_steps: self.max_steps,
+                    });
                 };
                 for c in &self.corruptions {
                     for &q in &c.q {

@@ -356,6 +356,57 @@ fn sweeps_record_every_episode_resume_and_shard() -> TestResult {
 }
 
 #[test]
+fn pgd_cells_differing_only_in_radius_get_their_own_ids() -> TestResult {
+    let two_radii = r#"
+name = "t"
+policies = ["p"]
+arms = ["ewm:0.01"]
+h = [2]
+seeds = { first = 0, count = 1 }
+[[corruptions]]
+fault = { kind = "pgd", iterations = 20 }
+q = [2]
+[[corruptions]]
+fault = { kind = "pgd", eps = 0.1, iterations = 20 }
+q = [2, 0]
+[[corruptions]]
+fault = { kind = "blank" }
+q = [0]
+"#;
+    let ids: Vec<String> = SweepSpec::from_toml(two_radii)?
+        .cells()
+        .into_iter()
+        .map(|c| c.id)
+        .collect();
+    assert_eq!(
+        ids,
+        [
+            "p-pgd-20-burst-q2-h2",
+            "p-pgd-20-eps0.1-burst-q2-h2",
+            "p-clean-h2"
+        ],
+        "the clean cell named twice is one cell"
+    );
+    // Two different patches whose files share a name would share a cell id.
+    let clash = r#"
+name = "t"
+policies = ["p"]
+arms = ["median"]
+h = [2]
+seeds = { first = 0, count = 1 }
+[[corruptions]]
+fault = { kind = "patch", path = "a/x.json" }
+q = [2]
+[[corruptions]]
+fault = { kind = "patch", path = "b/x.json" }
+q = [2]
+"#;
+    let e = SweepSpec::from_toml(clash).expect_err("two cells, one id");
+    assert!(e.to_string().contains("p-patch-x.json-burst-q2-h2"), "{e}");
+    Ok(())
+}
+
+#[test]
 fn the_shipped_sweep_specs_parse() -> TestResult {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../sweeps");
     let mut n = 0;

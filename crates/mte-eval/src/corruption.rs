@@ -190,12 +190,15 @@ pub enum QueryAttack {
 #[derive(Clone, Debug, PartialEq)]
 pub enum CandidateCorruption {
     /// Common-mode bias: every candidate covering a control time whose newest query is
-    /// corrupted is shifted by the same vector (`magnitude` px at `angle_deg`).
+    /// corrupted is shifted by the same vector (`magnitude` px at `angle_deg`, turning as
+    /// `direction` says).
     CommonMode {
         /// Length of the bias (px).
         magnitude: f64,
-        /// Direction, degrees counter-clockwise from +x.
+        /// Direction, degrees counter-clockwise from +x (at control time 0).
         angle_deg: f64,
+        /// Constant, slowly drifting, or random per episode.
+        direction: BiasDirection,
     },
     /// Oracle attack confined to the clean bracket: corrupted candidates take the bracket
     /// end that moves the coordinate-wise median farthest.
@@ -203,6 +206,41 @@ pub enum CandidateCorruption {
         /// Per-step or consistent direction.
         mode: OracleMode,
     },
+}
+
+/// How a common-mode bias's direction evolves within an episode. Whatever it is, at one
+/// control time every covering candidate gets the same vector.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum BiasDirection {
+    /// Fixed at `angle_deg`.
+    #[default]
+    Constant,
+    /// Turning from `angle_deg` by `deg_per_step` degrees per control step (a slowly
+    /// drifting bias: 1 degree per step turns a full circle in 360 steps).
+    Drift {
+        /// Degrees per control step, counter-clockwise.
+        deg_per_step: f64,
+    },
+    /// `angle_deg` plus an angle drawn uniformly from [0, 360) once per episode, from the
+    /// episode's seed and the run's noise seed (so both arms of a seed get the same one).
+    Random,
+}
+
+impl BiasDirection {
+    /// Whether this is the default ([`Self::Constant`]).
+    pub fn is_constant(&self) -> bool {
+        matches!(self, Self::Constant)
+    }
+
+    /// The suffix of a cell label: empty, `-drift<deg>`, or `-random`.
+    fn label(&self) -> String {
+        match self {
+            Self::Constant => String::new(),
+            Self::Drift { deg_per_step } => format!("-drift{deg_per_step}"),
+            Self::Random => "-random".into(),
+        }
+    }
 }
 
 impl From<SensorFault> for Fault {
@@ -254,13 +292,18 @@ impl Fault {
             Self::Candidates(CandidateCorruption::CommonMode {
                 magnitude,
                 angle_deg,
+                direction,
             }) => {
-                if magnitude.is_finite() && angle_deg.is_finite() {
+                let rate_ok = match direction {
+                    BiasDirection::Drift { deg_per_step } => deg_per_step.is_finite(),
+                    _ => true,
+                };
+                if magnitude.is_finite() && angle_deg.is_finite() && rate_ok {
                     Ok(())
                 } else {
                     Err(CorruptionError::new(
-                        "fault.magnitude/angle_deg",
-                        format!("{magnitude}/{angle_deg}"),
+                        "fault.magnitude/angle_deg/direction",
+                        format!("{magnitude}/{angle_deg}/{direction:?}"),
                         "finite numbers",
                     ))
                 }
@@ -306,7 +349,8 @@ impl fmt::Display for Fault {
             Self::Candidates(CandidateCorruption::CommonMode {
                 magnitude,
                 angle_deg,
-            }) => write!(f, "common-{magnitude}@{angle_deg}"),
+                direction,
+            }) => write!(f, "common-{magnitude}@{angle_deg}{}", direction.label()),
             Self::Candidates(CandidateCorruption::Oracle { mode }) => match mode {
                 OracleMode::Instant => f.write_str("oracle-inst"),
                 OracleMode::Drift => f.write_str("oracle-drift"),
@@ -361,7 +405,10 @@ impl fmt::Display for SensorFault {
 mod wire {
     use serde::{Deserialize, Serialize};
 
-    use super::{CandidateCorruption as C, Fault, OracleMode, QueryAttack as Q, SensorFault as S};
+    use super::{
+        BiasDirection, CandidateCorruption as C, Fault, OracleMode, QueryAttack as Q,
+        SensorFault as S,
+    };
 
     #[derive(Clone, Serialize, Deserialize)]
     #[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
@@ -370,13 +417,28 @@ mod wire {
         Blank,
         Stale,
         Frozen,
-        Occluder { size: usize },
-        MotionBlur { length: usize },
-        GaussianNoise { sigma: f64 },
-        CommonMode { magnitude: f64, angle_deg: f64 },
+        Occluder {
+            size: usize,
+        },
+        MotionBlur {
+            length: usize,
+        },
+        GaussianNoise {
+            sigma: f64,
+        },
+        CommonMode {
+            magnitude: f64,
+            angle_deg: f64,
+            #[serde(default, skip_serializing_if = "BiasDirection::is_constant")]
+            direction: BiasDirection,
+        },
         Pgd(mte_policy::PgdConfig),
-        Patch { path: std::path::PathBuf },
-        Oracle { mode: OracleMode },
+        Patch {
+            path: std::path::PathBuf,
+        },
+        Oracle {
+            mode: OracleMode,
+        },
     }
 
     impl From<FaultWire> for Fault {
@@ -394,9 +456,11 @@ mod wire {
                 FaultWire::CommonMode {
                     magnitude,
                     angle_deg,
+                    direction,
                 } => C::CommonMode {
                     magnitude,
                     angle_deg,
+                    direction,
                 }
                 .into(),
                 FaultWire::Oracle { mode } => C::Oracle { mode }.into(),
@@ -421,9 +485,11 @@ mod wire {
                 Fault::Candidates(C::CommonMode {
                     magnitude,
                     angle_deg,
+                    direction,
                 }) => Self::CommonMode {
                     magnitude,
                     angle_deg,
+                    direction,
                 },
                 Fault::Candidates(C::Oracle { mode }) => Self::Oracle { mode },
             }
@@ -930,6 +996,27 @@ mod tests {
                 CandidateCorruption::CommonMode {
                     magnitude: 8.0,
                     angle_deg: 90.0,
+                    direction: BiasDirection::Constant,
+                }
+                .into(),
+            ),
+            (
+                r#"{"kind":"common-mode","magnitude":8.0,"angle_deg":0.0,
+                    "direction":{"kind":"drift","deg_per_step":0.5}}"#,
+                CandidateCorruption::CommonMode {
+                    magnitude: 8.0,
+                    angle_deg: 0.0,
+                    direction: BiasDirection::Drift { deg_per_step: 0.5 },
+                }
+                .into(),
+            ),
+            (
+                r#"{"kind":"common-mode","magnitude":8.0,"angle_deg":0.0,
+                    "direction":{"kind":"random"}}"#,
+                CandidateCorruption::CommonMode {
+                    magnitude: 8.0,
+                    angle_deg: 0.0,
+                    direction: BiasDirection::Random,
                 }
                 .into(),
             ),

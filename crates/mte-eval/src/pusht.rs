@@ -40,8 +40,8 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::corruption::{
-    CandidateCorruption, CorruptionSpec, Fault, ObservationCorruptor, OracleMode, QueryAttack,
-    SensorFault,
+    BiasDirection, CandidateCorruption, CorruptionSpec, Fault, ObservationCorruptor, OracleMode,
+    QueryAttack, SensorFault,
 };
 use crate::environment::{Environment, PushTEnv};
 use crate::episode::{EpisodeObserver, NoObserver, QueryEvent, Stage, StageTimer, StepEvent};
@@ -265,9 +265,51 @@ impl OracleHook {
 struct ShiftHook {
     bias: [f32; 2],
     on: bool,
+    /// Length (px).
+    magnitude: f64,
+    /// Direction at control time 0 (radians).
+    angle: f64,
+    /// Turn per control step (radians).
+    rate: f64,
 }
 
 impl ShiftHook {
+    /// `magnitude` px at `angle_deg`, turning as `direction` says; a random direction is
+    /// drawn from the episode's per-episode attack stream.
+    fn new(
+        magnitude: f64,
+        angle_deg: f64,
+        direction: BiasDirection,
+        spec: &EpisodeSpec<'_>,
+    ) -> Self {
+        let (offset, rate) = match direction {
+            BiasDirection::Constant => (0.0, 0.0),
+            BiasDirection::Drift { deg_per_step } => (0.0, deg_per_step),
+            BiasDirection::Random => {
+                let mut r = query_rng(spec.noise_seed, spec.seed, 0, 2);
+                (r.random_range(0.0..360.0), 0.0)
+            }
+        };
+        let mut hook = Self {
+            bias: [0.0; 2],
+            on: false,
+            magnitude,
+            angle: (angle_deg + offset).to_radians(),
+            rate: rate.to_radians(),
+        };
+        hook.at(0);
+        hook
+    }
+
+    /// Points the bias where it is at control time `tau`.
+    fn at(&mut self, tau: u64) {
+        let a = self.angle + self.rate * tau as f64;
+        self.bias = [
+            (self.magnitude * a.cos()) as f32,
+            (self.magnitude * a.sin()) as f32,
+        ];
+    }
+
     /// Adds the bias to one action (its first two coordinates).
     fn shift(&self, action: &mut [f32]) {
         for (x, b) in action.iter_mut().zip(self.bias) {
@@ -315,15 +357,10 @@ impl CandidateFault {
                 Fault::Candidates(CandidateCorruption::CommonMode {
                     magnitude,
                     angle_deg,
+                    direction,
                 }),
                 _,
-            ) => {
-                let a = angle_deg.to_radians();
-                Self::CommonMode(ShiftHook {
-                    bias: [(magnitude * a.cos()) as f32, (magnitude * a.sin()) as f32],
-                    on: false,
-                })
-            }
+            ) => Self::CommonMode(ShiftHook::new(*magnitude, *angle_deg, *direction, spec)),
             _ => Self::None(NoHook),
         })
     }
@@ -790,6 +827,9 @@ impl<'e, 's> Episode<'e, 's> {
     fn decide(&mut self, w: &mut dyn EpisodeObserver) -> Result<StepEvent<'_>, RolloutError> {
         let tau = self.steps as u64;
         let d = self.out.len();
+        if let CandidateFault::CommonMode(s) = &mut self.candidate_fault {
+            s.at(tau);
+        }
         let t = Instant::now();
         let event = match &mut self.executor {
             Executor::Ensemble(e) => {

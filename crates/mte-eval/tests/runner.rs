@@ -7,7 +7,8 @@ use std::sync::Mutex;
 use mte_ensemble::Regime;
 use mte_eval::Silent;
 use mte_eval::corruption::{
-    CandidateCorruption, CorruptionSpec, Fault, OracleMode, QueryAttack, Schedule, SensorFault,
+    BiasDirection, CandidateCorruption, CorruptionSpec, Fault, OracleMode, QueryAttack, Schedule,
+    SensorFault,
 };
 use mte_eval::pusht::{EpisodeSpec, Execution, ObsNeeds, run_episode};
 use mte_eval::record::{EpisodeRecord, Line};
@@ -633,6 +634,7 @@ fn common_mode_bias_shifts_the_candidates_the_aggregator_sees() -> TestResult {
         fault: Fault::Candidates(CandidateCorruption::CommonMode {
             magnitude: 64.0,
             angle_deg: 0.0,
+            direction: BiasDirection::Constant,
         }),
         schedule: Schedule::Dense { start: 0, end: 1 },
     };
@@ -656,6 +658,74 @@ fn common_mode_bias_shifts_the_candidates_the_aggregator_sees() -> TestResult {
         assert_eq!(b.4[0], c.4[0] + 64.0, "action at tau {tau}");
         assert_eq!(b.2, 0, "common-mode candidates are not flagged");
     }
+    Ok(())
+}
+
+/// The action shifts (x, y) of a median episode under common-mode bias, against the clean
+/// episode of the same seed, at the control times `0..n` (the first query is corrupted
+/// and newest there).
+fn common_mode_shifts(
+    direction: BiasDirection,
+    seed: u64,
+    execution: Execution,
+    n: usize,
+) -> Result<Vec<(f32, f32)>, Box<dyn std::error::Error>> {
+    let shifted = CorruptionSpec {
+        fault: Fault::Candidates(CandidateCorruption::CommonMode {
+            magnitude: 64.0,
+            angle_deg: 0.0,
+            direction,
+        }),
+        schedule: Schedule::Dense { start: 0, end: 1 },
+    };
+    let run = |c: &CorruptionSpec| -> Result<Watch, Box<dyn std::error::Error>> {
+        let mut w = Watch::default();
+        let mut s = spec(execution, c, 2);
+        s.seed = seed;
+        mte_eval::pusht::run_episode_observed(&Scripted::new(400.0), &s, &mut w)?;
+        Ok(w)
+    };
+    let (b, c) = (run(&shifted)?, run(&CorruptionSpec::CLEAN)?);
+    Ok((0..n)
+        .map(|t| {
+            (
+                b.steps[t].4[0] - c.steps[t].4[0],
+                b.steps[t].4[1] - c.steps[t].4[1],
+            )
+        })
+        .collect())
+}
+
+/// A drifting bias turns by its rate each control step; a random one keeps its length, is
+/// the same for both arms of a seed and differs between seeds.
+#[test]
+fn common_mode_bias_drifts_or_is_drawn_per_episode() -> TestResult {
+    let median = Execution::Ensemble(mte_ensemble::Aggregator::MEDIAN);
+    let near = |a: f32, b: f32| (a - b).abs() < 1e-3;
+    let drift = common_mode_shifts(
+        BiasDirection::Drift { deg_per_step: 90.0 },
+        100_000,
+        median,
+        2,
+    )?;
+    assert!(near(drift[0].0, 64.0) && near(drift[0].1, 0.0), "{drift:?}");
+    assert!(near(drift[1].0, 0.0) && near(drift[1].1, 64.0), "{drift:?}");
+    let mean = Execution::Ensemble(mte_ensemble::Aggregator::Mean);
+    let a = common_mode_shifts(BiasDirection::Random, 100_000, median, 2)?;
+    let b = common_mode_shifts(BiasDirection::Random, 100_000, mean, 2)?;
+    let other = common_mode_shifts(BiasDirection::Random, 100_001, median, 2)?;
+    for (x, y) in [a[0], a[1], other[0]] {
+        assert!(near(x.hypot(y), 64.0), "length {}", x.hypot(y));
+    }
+    assert!(
+        near(a[0].0, a[1].0) && near(a[0].1, a[1].1),
+        "constant within the episode"
+    );
+    assert!(
+        near(a[0].0, b[0].0) && near(a[0].1, b[0].1),
+        "paired across arms"
+    );
+    assert!(!near(a[0].0, other[0].0), "another seed, another direction");
     Ok(())
 }
 

@@ -794,6 +794,10 @@ pub struct MonitorEvaluateArgs {
     /// Thresholds from `mte monitor calibrate` (on other episodes than these).
     #[arg(long, value_name = "FILE")]
     pub thresholds: PathBuf,
+    /// Also write ROC plots (`roc-<monitor>-<arm>.svg`, one curve per corrupted cell against
+    /// its clean cell) into this folder.
+    #[arg(long, value_name = "DIR")]
+    pub plots: Option<PathBuf>,
 }
 
 /// `mte attack control`

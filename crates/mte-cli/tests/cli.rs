@@ -854,8 +854,17 @@ q = [0, 3]
             .args(["--format", "json", "monitor", "evaluate"])
             .arg(p("run"))
             .arg("--thresholds")
-            .arg(p("thresholds.json")),
+            .arg(p("thresholds.json"))
+            .arg("--plots")
+            .arg(p("roc")),
     );
+    // ROC plots: one per monitor and arm, each a curve of the corrupted cell.
+    for m in ["tide", "acc"] {
+        for arm in ["ewm_0.01", "median"] {
+            let svg = fs::read_to_string(p("roc").join(format!("roc-{m}-{arm}.svg"))).unwrap();
+            assert!(svg.contains("<svg") && svg.contains("AUROC"), "{m} {arm}");
+        }
+    }
     let rows = ev["rows"].as_array().unwrap();
     assert_eq!(rows.len(), 8, "{ev}");
     for r in rows {
@@ -869,6 +878,9 @@ q = [0, 3]
         }
         if let Some(a) = r["auroc"].as_f64() {
             assert!((0.0..=1.0).contains(&a), "{r}");
+            let roc = r["roc"].as_array().unwrap();
+            assert_eq!(roc.first().unwrap(), &serde_json::json!([0.0, 0.0]), "{r}");
+            assert_eq!(roc.last().unwrap(), &serde_json::json!([1.0, 1.0]), "{r}");
         }
     }
     // Bad input: a corrupted cell cannot calibrate; a missing file is named.

@@ -99,6 +99,9 @@ pub struct MonitorRow {
     pub auroc: Option<f64>,
     /// Hanley–McNeil 95% interval of the AUROC, clipped to [0, 1].
     pub auroc_ci: Option<(f64, f64)>,
+    /// The ROC curve behind the AUROC, `(false positive rate, true positive rate)` points
+    /// ([`mte_stats::roc_curve`]); empty where the AUROC is `None`.
+    pub roc: Vec<(f64, f64)>,
 }
 
 impl MonitorRow {
@@ -164,6 +167,10 @@ pub fn evaluate(
                     reference.map(|r| maxima(records.get(&r.id).unwrap_or(&empty))),
                 );
                 let auroc = neg.as_ref().and_then(|n| mte_stats::auroc(&pos, n).ok());
+                let roc = neg
+                    .as_ref()
+                    .and_then(|n| mte_stats::roc_curve(&pos, n).ok())
+                    .unwrap_or_default();
                 let auroc_ci = auroc.zip(neg.as_ref()).map(|(a, n)| {
                     let se = auroc_se(a, pos.len(), n.len());
                     ((a - 1.96 * se).max(0.0), (a + 1.96 * se).min(1.0))
@@ -179,6 +186,7 @@ pub fn evaluate(
                     reference: reference.map(|r| r.id.clone()),
                     auroc,
                     auroc_ci,
+                    roc,
                 });
             }
         }

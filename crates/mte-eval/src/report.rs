@@ -52,6 +52,7 @@ mod defence;
 mod figures;
 mod plot;
 mod render;
+mod roc;
 
 use figures::plots;
 
@@ -60,6 +61,7 @@ use render::{Block, code, delta, est, f3, fmt_p, opt_p, pct, table};
 pub use defence::{DefencePair, DefenceRow, DefenceTable};
 pub use plot::Plot;
 use plot::{PlotSpec, Point, Series};
+pub use roc::roc_plots;
 
 /// Arm text form of open-loop execution (no ensemble: excluded from `M`/`q` tables).
 const OPEN_LOOP: &str = "open-loop";

@@ -33,6 +33,51 @@ pub fn recovered_fraction(clean: f64, undefended: f64, defended: f64) -> Result<
     Ok((defended - undefended) / (clean - undefended))
 }
 
+/// The empirical ROC curve of a detector score: `(false positive rate, true positive rate)`
+/// at every threshold between distinct pooled scores, from `(0, 0)` (nothing flagged) to
+/// `(1, 1)` (everything flagged), "flagged" meaning `score >= threshold`. Tied scores move
+/// both rates in one diagonal step, so the trapezoidal area under these points is exactly
+/// [`auroc`] (ties counting 1/2).
+///
+/// ```
+/// let roc = mte_stats::roc_curve(&[0.9, 0.4], &[0.4, 0.1])?;
+/// assert_eq!(roc, vec![(0.0, 0.0), (0.0, 0.5), (0.5, 1.0), (1.0, 1.0)]);
+/// # Ok::<(), mte_stats::StatsError>(())
+/// ```
+///
+/// # Errors
+///
+/// As [`auroc`]: an empty side, or a NaN or infinite score.
+pub fn roc_curve(positive_scores: &[f64], negative_scores: &[f64]) -> Result<Vec<(f64, f64)>> {
+    check_sample("positive_scores", positive_scores)?;
+    check_sample("negative_scores", negative_scores)?;
+    let (n1, n0) = (positive_scores.len() as f64, negative_scores.len() as f64);
+    let mut pooled: Vec<(f64, bool)> = positive_scores
+        .iter()
+        .map(|&s| (s, true))
+        .chain(negative_scores.iter().map(|&s| (s, false)))
+        .collect();
+    // Highest first; finite values only, so partial_cmp never fails.
+    pooled.sort_by(|a, b| b.0.partial_cmp(&a.0).unwrap_or(Ordering::Equal));
+    let mut points = vec![(0.0, 0.0)];
+    let (mut tp, mut fp) = (0usize, 0usize);
+    let mut s = 0;
+    while s < pooled.len() {
+        let mut e = s;
+        while e < pooled.len() && pooled[e].0 == pooled[s].0 {
+            if pooled[e].1 {
+                tp += 1;
+            } else {
+                fp += 1;
+            }
+            e += 1;
+        }
+        points.push((fp as f64 / n0, tp as f64 / n1));
+        s = e;
+    }
+    Ok(points)
+}
+
 /// Area under the ROC curve: the probability that a randomly drawn positive scores higher
 /// than a randomly drawn negative, ties counting 1/2.
 ///
@@ -81,4 +126,32 @@ pub fn auroc(positive_scores: &[f64], negative_scores: &[f64]) -> Result<f64> {
     let n1w = n1 as u128;
     let u2 = rank_sum2 - n1w * (n1w + 1);
     Ok(u2 as f64 / 2.0 / (n1 as f64 * n0 as f64))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn roc_curve_area_is_the_auroc_and_ties_step_diagonally() -> Result<()> {
+        let pos = [0.9, 0.8, 0.4, 0.4, 2.0];
+        let neg = [0.1, 0.4, 0.3, 0.4, 0.85];
+        let roc = roc_curve(&pos, &neg)?;
+        assert_eq!(roc.first(), Some(&(0.0, 0.0)));
+        assert_eq!(roc.last(), Some(&(1.0, 1.0)));
+        assert!(roc.windows(2).all(|w| w[1].0 >= w[0].0 && w[1].1 >= w[0].1));
+        let area: f64 = roc
+            .windows(2)
+            .map(|w| (w[1].0 - w[0].0) * (w[1].1 + w[0].1) / 2.0)
+            .sum();
+        assert!((area - auroc(&pos, &neg)?).abs() < 1e-12, "{area}");
+        // The tie at 0.4 (two positives, two negatives) is one diagonal step of (0.4, 0.4).
+        assert!(
+            roc.contains(&(0.2, 0.6)) && roc.contains(&(0.6, 1.0)),
+            "{roc:?}"
+        );
+        assert!(roc_curve(&[], &neg).is_err());
+        assert!(roc_curve(&pos, &[f64::NAN]).is_err());
+        Ok(())
+    }
 }

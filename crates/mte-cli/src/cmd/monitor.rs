@@ -123,6 +123,14 @@ pub fn evaluate(cli: &Cli, a: &MonitorEvaluateArgs) -> Result<()> {
         .with_context(|| format!("{}: not a thresholds file", a.thresholds.display()))?;
     let (cells, records) = records_by_cell(&a.run)?;
     let rows = evaluate_rows(&cells, &records, &thresholds);
+    if let Some(dir) = &a.plots {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        for plot in mte_eval::report::roc_plots(&rows)? {
+            let path = dir.join(format!("{}.svg", plot.name));
+            std::fs::write(&path, &plot.svg)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
+    }
     let mut so = std::io::stdout().lock();
     match cli.format {
         Format::Json => writeln!(

@@ -68,7 +68,7 @@ pub fn run_lockstep_in<'e>(
                 index,
                 ep,
                 w,
-                t_start,
+                busy_s: t_start.elapsed().as_secs_f64(),
                 pending: None,
                 error: None,
             }),
@@ -101,7 +101,10 @@ struct Slot<'e> {
     index: usize,
     ep: Episode<'e, 'e>,
     w: Watchers<'e>,
-    t_start: Instant,
+    /// Wall time of this episode's own work so far (s): its stages, and its share of the
+    /// batched policy calls. The episode's record reports this as its total, not the time
+    /// since it started, which would count the other episodes of the lockstep batch.
+    busy_s: f64,
     pending: Option<Pending>,
     error: Option<RolloutError>,
 }
@@ -109,6 +112,7 @@ struct Slot<'e> {
 impl Slot<'_> {
     /// Stages *observe* and *corrupt*.
     fn observe_and_prepare(&mut self) {
+        let t = Instant::now();
         let r = self
             .ep
             .observe(&mut self.w)
@@ -117,6 +121,7 @@ impl Slot<'_> {
             Ok(p) => self.pending = p,
             Err(e) => self.error = Some(e),
         }
+        self.busy_s += t.elapsed().as_secs_f64();
     }
 
     /// The rest of the step, given the answer to this step's query (if it had one).
@@ -124,6 +129,7 @@ impl Slot<'_> {
         if self.error.is_some() {
             return;
         }
+        let t = Instant::now();
         let r = (|| {
             if let (Some(p), Some(chunk)) = (self.pending.take(), chunk) {
                 let event = self.ep.accept(&p, chunk?, &mut self.w)?;
@@ -134,6 +140,7 @@ impl Slot<'_> {
         if let Err(e) = r {
             self.error = Some(e);
         }
+        self.busy_s += t.elapsed().as_secs_f64();
     }
 }
 
@@ -145,7 +152,7 @@ fn retire(live: &mut Vec<Slot<'_>>, on_done: &mut OnDone<'_>) {
             let s = live.remove(k);
             let result = match s.error {
                 Some(e) => Err(e),
-                None => Ok(s.ep.record(s.w, s.t_start)),
+                None => Ok(s.ep.record(s.w, s.busy_s)),
             };
             on_done(s.index, result);
         } else {
@@ -182,6 +189,7 @@ fn answer(
         let stage = pending[0].stage();
         for (&k, a) in members.iter().zip(answers) {
             live[k].w.on_stage(stage, share);
+            live[k].busy_s += share;
             out[k] = Some(a);
         }
     }

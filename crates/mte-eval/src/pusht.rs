@@ -580,7 +580,7 @@ pub fn run_episode_in(
         }
         ep.act(&mut w)?;
     }
-    Ok(ep.record(w, t_start))
+    Ok(ep.record(w, t_start.elapsed().as_secs_f64()))
 }
 
 /// A query made ready by stage *corrupt*: the window the policy sees, whether the query is
@@ -800,11 +800,12 @@ impl<'e, 's> Episode<'e, 's> {
         self.step(w)
     }
 
-    /// The episode's record (its `cell` empty: the caller names it).
-    pub(crate) fn record(&self, w: Watchers<'_>, t_start: Instant) -> EpisodeRecord {
+    /// The episode's record (its `cell` empty: the caller names it); `total_s` is the
+    /// wall time this episode's own work took (s).
+    pub(crate) fn record(&self, w: Watchers<'_>, total_s: f64) -> EpisodeRecord {
         let spec = self.spec;
         let (rec, mut times, monitors) = (w.rec, w.timer.times, w.monitors.traces());
-        times.total_s = t_start.elapsed().as_secs_f64();
+        times.total_s = total_s;
         let ensembled = matches!(spec.execution, Execution::Ensemble(_));
         EpisodeRecord {
             cell: String::new(),

@@ -183,3 +183,47 @@ fn alignment_twins_share_the_executed_noise() -> TestResult {
     assert!((-1.0..=1.0).contains(&m), "{real:?}");
     Ok(())
 }
+
+/// In lockstep an episode's total time is its own work (its stages and its share of the
+/// batched policy calls), not the wall time from its start to its end, which would count
+/// every other episode of the batch: on one worker the totals add up to at most the run's
+/// wall time, and each covers the episode's own stages.
+#[test]
+fn lockstep_totals_count_only_the_episodes_own_work() -> TestResult {
+    let spec = spec(
+        "pusht_keypoints_cpu",
+        "[[corruptions]]\nfault = { kind = \"none\" }\nq = [0]",
+    )?;
+    let dir = tempfile::tempdir()?;
+    let manifest = spec.manifest(None, 0);
+    let rd = RunDir::create(&dir.path().join("run"), &spec.to_toml()?, &manifest, false)?;
+    let t = std::time::Instant::now();
+    let options = RunOptions {
+        workers: 1,
+        batch: 64,
+    };
+    run(
+        &spec,
+        &manifest,
+        &rd,
+        Shard::default(),
+        options,
+        &CheckpointSource,
+        &Silent,
+    )?;
+    let wall = t.elapsed().as_secs_f64();
+    let mut sum = 0.0;
+    let mut n = 0;
+    for line in read_lines(&rd.cell_path(&spec.cells()[0].id))? {
+        let Line::Episode(e) = line else {
+            return Err("an error line".into());
+        };
+        let own = e.times.policy_s + e.times.sim_s + e.times.render_s + e.times.corruption_s;
+        assert!(e.times.total_s >= own, "{:?}", e.times);
+        sum += e.times.total_s;
+        n += 1;
+    }
+    assert_eq!(n, 9, "3 seeds x 3 arms");
+    assert!(sum <= wall, "episode totals {sum} s over a run of {wall} s");
+    Ok(())
+}

@@ -231,38 +231,41 @@ impl SweepSpec {
         self.check_cell_ids()
     }
 
-    /// Two different cells must not share an id: a run keeps one file per id, and
-    /// [`Self::cells`] keeps the first of identical ones.
+    /// Two different cells must not share an id: a run keeps one file per id.
     fn check_cell_ids(&self) -> Result<(), SweepError> {
-        let mut seen: Vec<CellSpec> = Vec::new();
-        for c in self.cells_with_repeats() {
-            match seen.iter().find(|s| s.id == c.id) {
-                Some(s) if s.corruption != c.corruption || s.policy != c.policy => {
-                    return Err(field(
-                        "corruptions",
-                        &c.id,
-                        format!(
-                            "cells with different ids; `{}` and `{}` ({}, {}) both name it",
-                            s.corruption.fault, c.corruption.fault, s.policy, c.policy
-                        ),
-                    ));
-                }
-                Some(_) => {}
-                None => seen.push(c),
-            }
+        match self.unique_cells().1 {
+            Some((kept, clash)) => Err(field(
+                "corruptions",
+                &clash.id,
+                format!(
+                    "cells with different ids; `{}` and `{}` ({}, {}) both name it",
+                    kept.corruption.fault, clash.corruption.fault, kept.policy, clash.policy
+                ),
+            )),
+            None => Ok(()),
         }
-        Ok(())
     }
 
     /// The grid's cells, in a stable order (policy, h, corruption entry, q / schedule).
     pub fn cells(&self) -> Vec<CellSpec> {
+        self.unique_cells().0
+    }
+
+    /// The grid's cells, each id once (the first of identical cells kept), and the first
+    /// cell that differs from a kept one with its id (with that kept cell), if any.
+    fn unique_cells(&self) -> (Vec<CellSpec>, Option<(CellSpec, CellSpec)>) {
         let mut cells: Vec<CellSpec> = Vec::new();
+        let mut clash = None;
         for c in self.cells_with_repeats() {
-            if !cells.iter().any(|k| k.id == c.id) {
-                cells.push(c);
+            match cells.iter().find(|k| k.id == c.id) {
+                None => cells.push(c),
+                Some(k) if k.corruption != c.corruption || k.policy != c.policy => {
+                    clash = clash.or_else(|| Some((k.clone(), c)));
+                }
+                Some(_) => {}
             }
         }
-        cells
+        (cells, clash)
     }
 
     /// Every (policy, h, corruption) of the grid in order, repeats included.

@@ -35,9 +35,12 @@ max_steps = 24
     Ok(SweepSpec::from_toml(&text)?)
 }
 
-/// Every episode record of a run of `spec` with `options`, timings zeroed, by (cell, arm,
-/// seed); errors as their text.
-fn records(spec: &SweepSpec, options: RunOptions) -> Result<Records, Box<dyn std::error::Error>> {
+/// `spec` run with `options` into a new run directory (inside the returned temporary
+/// directory, which removes it when dropped), no episode failing.
+fn run_in_tempdir(
+    spec: &SweepSpec,
+    options: RunOptions,
+) -> Result<(tempfile::TempDir, RunDir), Box<dyn std::error::Error>> {
     let dir = tempfile::tempdir()?;
     let manifest = spec.manifest(None, 0);
     let rd = RunDir::create(&dir.path().join("run"), &spec.to_toml()?, &manifest, false)?;
@@ -51,6 +54,13 @@ fn records(spec: &SweepSpec, options: RunOptions) -> Result<Records, Box<dyn std
         &Silent,
     )?;
     assert_eq!(s.errors, 0, "{s:?}");
+    Ok((dir, rd))
+}
+
+/// Every episode record of a run of `spec` with `options`, timings zeroed, by (cell, arm,
+/// seed); errors as their text.
+fn records(spec: &SweepSpec, options: RunOptions) -> Result<Records, Box<dyn std::error::Error>> {
+    let (_dir, rd) = run_in_tempdir(spec, options)?;
     let mut out = BTreeMap::new();
     for cell in spec.cells() {
         for line in read_lines(&rd.cell_path(&cell.id))? {
@@ -194,23 +204,12 @@ fn lockstep_totals_count_only_the_episodes_own_work() -> TestResult {
         "pusht_keypoints_cpu",
         "[[corruptions]]\nfault = { kind = \"none\" }\nq = [0]",
     )?;
-    let dir = tempfile::tempdir()?;
-    let manifest = spec.manifest(None, 0);
-    let rd = RunDir::create(&dir.path().join("run"), &spec.to_toml()?, &manifest, false)?;
     let t = std::time::Instant::now();
     let options = RunOptions {
         workers: 1,
         batch: 64,
     };
-    run(
-        &spec,
-        &manifest,
-        &rd,
-        Shard::default(),
-        options,
-        &CheckpointSource,
-        &Silent,
-    )?;
+    let (_dir, rd) = run_in_tempdir(&spec, options)?;
     let wall = t.elapsed().as_secs_f64();
     let mut sum = 0.0;
     let mut n = 0;

@@ -33,6 +33,21 @@ pub fn recovered_fraction(clean: f64, undefended: f64, defended: f64) -> Result<
     Ok((defended - undefended) / (clean - undefended))
 }
 
+/// Both samples checked (non-empty, finite) and pooled as `(score, is_positive)`, lowest
+/// score first.
+fn sorted_pool(positive_scores: &[f64], negative_scores: &[f64]) -> Result<Vec<(f64, bool)>> {
+    check_sample("positive_scores", positive_scores)?;
+    check_sample("negative_scores", negative_scores)?;
+    let mut pooled: Vec<(f64, bool)> = positive_scores
+        .iter()
+        .map(|&s| (s, true))
+        .chain(negative_scores.iter().map(|&s| (s, false)))
+        .collect();
+    // Finite values only: partial_cmp never fails, and treats -0.0 == 0.0.
+    pooled.sort_by(|a, b| a.0.partial_cmp(&b.0).unwrap_or(Ordering::Equal));
+    Ok(pooled)
+}
+
 /// The empirical ROC curve of a detector score: `(false positive rate, true positive rate)`
 /// at every threshold between distinct pooled scores, from `(0, 0)` (nothing flagged) to
 /// `(1, 1)` (everything flagged), "flagged" meaning `score >= threshold`. Tied scores move
@@ -49,16 +64,9 @@ pub fn recovered_fraction(clean: f64, undefended: f64, defended: f64) -> Result<
 ///
 /// As [`auroc`]: an empty side, or a NaN or infinite score.
 pub fn roc_curve(positive_scores: &[f64], negative_scores: &[f64]) -> Result<Vec<(f64, f64)>> {
-    check_sample("positive_scores", positive_scores)?;
-    check_sample("negative_scores", negative_scores)?;
     let (n1, n0) = (positive_scores.len() as f64, negative_scores.len() as f64);
-    let mut pooled: Vec<(f64, bool)> = positive_scores
-        .iter()
-        .map(|&s| (s, true))
-        .chain(negative_scores.iter().map(|&s| (s, false)))
-        .collect();
-    // Highest first; finite values only, so partial_cmp never fails.
-    pooled.sort_by(|a, b| b.0.partial_cmp(&a.0).unwrap_or(Ordering::Equal));
+    let mut pooled = sorted_pool(positive_scores, negative_scores)?;
+    pooled.reverse(); // highest first
     let mut points = vec![(0.0, 0.0)];
     let (mut tp, mut fp) = (0usize, 0usize);
     let mut s = 0;
@@ -99,17 +107,9 @@ pub fn roc_curve(positive_scores: &[f64], negative_scores: &[f64]) -> Result<Vec
 /// [`StatsError::EmptySample`] if either side is empty, [`StatsError::NonFinite`] for a
 /// NaN or infinite score.
 pub fn auroc(positive_scores: &[f64], negative_scores: &[f64]) -> Result<f64> {
-    check_sample("positive_scores", positive_scores)?;
-    check_sample("negative_scores", negative_scores)?;
     let n1 = positive_scores.len();
     let n0 = negative_scores.len();
-    let mut pooled: Vec<(f64, bool)> = positive_scores
-        .iter()
-        .map(|&s| (s, true))
-        .chain(negative_scores.iter().map(|&s| (s, false)))
-        .collect();
-    // Finite values only: partial_cmp never fails, and treats -0.0 == 0.0.
-    pooled.sort_by(|a, b| a.0.partial_cmp(&b.0).unwrap_or(Ordering::Equal));
+    let pooled = sorted_pool(positive_scores, negative_scores)?;
     // Sum of doubled midranks of the positives: integer arithmetic, exact.
     let mut rank_sum2: u128 = 0;
     let mut s = 0;

@@ -216,6 +216,10 @@ pub struct TrainActArgs {
     /// same at width 128 with 2 encoder layers.
     #[arg(long, value_enum, default_value_t = PresetArg::Cpu)]
     pub preset: PresetArg,
+    /// JSON file of config fields overriding the preset (LeRobot's config.json names, e.g.
+    /// `{"chunk_size": 20, "n_action_steps": 20}`); an unknown field is an error.
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
     /// Optimiser steps in total (a resumed run continues to this count).
     #[arg(long, default_value_t = 20000)]
     pub steps: usize,

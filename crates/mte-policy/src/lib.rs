@@ -23,6 +23,7 @@ pub mod error;
 pub mod init;
 pub mod kernels;
 pub mod normalize;
+pub mod overrides;
 pub mod policy;
 pub mod vision;
 

@@ -15,6 +15,13 @@ use crate::args::{
 };
 use crate::progress::Bar;
 
+/// The JSON object of config fields in `path`.
+fn read_overrides(path: &std::path::Path) -> Result<serde_json::Value> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
 /// The preset for `obs`, with the fields of the JSON file `overrides` replaced.
 fn preset_config(
     preset: PresetArg,
@@ -32,11 +39,7 @@ fn preset_config(
         }
     };
     if let Some(path) = overrides {
-        let text =
-            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-        let patch: serde_json::Value =
-            serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
-        config = config.with_overrides(&patch)?;
+        config = config.with_overrides(&read_overrides(path)?)?;
     }
     config.validate().context("check the preset and --config")?;
     Ok(config)
@@ -126,10 +129,13 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
 pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
     use mte_policy::act::ActConfig;
     use mte_policy::act::train::{ActTrainConfig, train as train_act};
-    let config = match a.preset {
+    let mut config = match a.preset {
         PresetArg::Cpu => ActConfig::cpu(),
         PresetArg::Paper => ActConfig::paper(),
     };
+    if let Some(path) = &a.config {
+        config = config.with_overrides(&read_overrides(path)?)?;
+    }
     // The keypoint arrays and their statistics, as a keypoint Diffusion Policy reads them.
     let data = load_train_data(&a.data, &DiffusionConfig::cpu(ObsKind::Keypoints))?;
     let tc = ActTrainConfig {

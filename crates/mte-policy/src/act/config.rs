@@ -142,6 +142,14 @@ impl ActConfig {
         }
     }
 
+    /// Override fields of `self` with those present in the JSON object `patch` (LeRobot's
+    /// config.json names); an unknown field is an error.
+    pub fn with_overrides(&self, patch: &serde_json::Value) -> Result<Self, PolicyError> {
+        let c: ActConfig = crate::overrides::apply(self, patch)?;
+        c.validate()?;
+        Ok(c)
+    }
+
     /// Check every field the network depends on.
     pub fn validate(&self) -> Result<(), PolicyError> {
         if self.kind != "act" {
@@ -286,5 +294,23 @@ mod tests {
         assert!(e.contains("no image backbone"), "{e}");
         assert_eq!(ActConfig::paper().state_dim(), Some(2));
         assert_eq!(ActConfig::paper().env_state_dim(), Some(16));
+    }
+
+    #[test]
+    fn overrides_replace_fields_and_reject_unknown_ones() {
+        let c = ActConfig::cpu()
+            .with_overrides(&serde_json::json!({"chunk_size": 20, "n_action_steps": 20}))
+            .expect("valid override");
+        assert_eq!((c.chunk_size, c.n_action_steps, c.dim_model), (20, 20, 128));
+        let e = ActConfig::cpu()
+            .with_overrides(&serde_json::json!({"chunk_sise": 20}))
+            .expect_err("a typo is not a field")
+            .to_string();
+        assert!(e.contains("chunk_sise"), "{e}");
+        let e = ActConfig::cpu()
+            .with_overrides(&serde_json::json!({"chunk_size": 20}))
+            .expect_err("n_action_steps 100 > chunk 20")
+            .to_string();
+        assert!(e.contains("n_action_steps"), "{e}");
     }
 }

@@ -364,25 +364,7 @@ impl DiffusionConfig {
 
     /// Override fields of `self` with those present in the JSON object `patch`.
     pub fn with_overrides(&self, patch: &serde_json::Value) -> Result<Self, PolicyError> {
-        let mut v = serde_json::to_value(self).map_err(|source| PolicyError::Json {
-            path: "<config>".into(),
-            source,
-        })?;
-        if let (Some(base), Some(p)) = (v.as_object_mut(), patch.as_object()) {
-            for (k, val) in p {
-                base.insert(k.clone(), val.clone());
-            }
-        } else {
-            return Err(config_err(
-                "<overrides>",
-                patch,
-                "a JSON object of config fields",
-            ));
-        }
-        let c: DiffusionConfig = serde_json::from_value(v).map_err(|source| PolicyError::Json {
-            path: "<overrides>".into(),
-            source,
-        })?;
+        let c: DiffusionConfig = crate::overrides::apply(self, patch)?;
         c.validate()?;
         Ok(c)
     }
@@ -685,6 +667,20 @@ mod tests {
             .with_overrides(&serde_json::json!({"down_dims": [32, 64]}))
             .expect("valid override");
         assert_eq!(ok.down_dims, vec![32, 64]);
+    }
+
+    #[test]
+    fn an_unknown_override_is_an_error_naming_it() {
+        let e = DiffusionConfig::paper()
+            .with_overrides(&serde_json::json!({"horizn": 8}))
+            .expect_err("a typo is not a field")
+            .to_string();
+        assert!(e.contains("horizn"), "{e}");
+        let e = DiffusionConfig::paper()
+            .with_overrides(&serde_json::json!([1, 2]))
+            .expect_err("not an object")
+            .to_string();
+        assert!(e.contains("JSON object"), "{e}");
     }
 
     #[test]

@@ -713,10 +713,21 @@ pub enum AttackCommand {
     /// patch's mean colour, mid-grey or seeded noise (evaluate it beside the patch: the
     /// patch's effect beyond it is its pattern's, not the occlusion's).
     Control(AttackControlArgs),
-    /// How aligned PGD's displacements are across the candidates covering a control time
-    /// (median pairwise cosine of attacked-minus-clean candidate rows, the clean twin drawn
-    /// with the executed chunk's noise): 1 is common-mode.
+    /// How aligned a corruption's displacements are across the candidates covering a control
+    /// time (median pairwise cosine of corrupted-minus-clean candidate rows, the clean twin
+    /// drawn with the executed chunk's noise): 1 is common-mode. PGD, blank frames or a patch.
     Alignment(AlignmentArgs),
+}
+
+/// The corruption `mte attack alignment` measures.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum AlignmentFault {
+    /// PGD on the observation (`--iterations`, `--eps`).
+    Pgd,
+    /// Blank frames (zero pixels, or zero keypoints).
+    Blank,
+    /// A trained patch (`--patch DIR`) drawn into the camera frames.
+    Patch,
 }
 
 /// `mte attack alignment`
@@ -728,6 +739,12 @@ pub struct AlignmentArgs {
     /// Episodes (seeds 100000, ...).
     #[arg(long, default_value_t = 10, value_parser = at_least_one)]
     pub episodes: usize,
+    /// The corruption of the corrupted queries.
+    #[arg(long, value_enum, default_value_t = AlignmentFault::Pgd)]
+    pub fault: AlignmentFault,
+    /// The patch directory (`mte attack patch` or `mte attack control`), with `--fault patch`.
+    #[arg(long, value_name = "DIR", required_if_eq("fault", "patch"))]
+    pub patch: Option<PathBuf>,
     /// PGD iterations.
     #[arg(long, default_value_t = 10, value_parser = at_least_one)]
     pub iterations: usize,

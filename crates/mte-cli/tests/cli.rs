@@ -901,3 +901,47 @@ q = [0, 3]
         .code(2)
         .stderr(predicate::str::contains("missing.json"));
 }
+
+/// `mte attack alignment --fault blank` measures blank frames' displacements; `--fault
+/// patch` without `--patch` is refused, naming the flag; `train act --config` with a key ACT
+/// does not have is refused, naming the key.
+#[test]
+fn alignment_of_blank_frames_and_refused_arguments() {
+    let v = json_stdout(
+        mte()
+            .args([
+                "--format",
+                "json",
+                "attack",
+                "alignment",
+                "--fault",
+                "blank",
+            ])
+            .args(["--episodes", "1", "--max-steps", "30", "--policy"])
+            .arg(bundled()),
+    );
+    assert!(
+        v["alignment"]["attacked_queries"].as_u64().unwrap() > 0,
+        "{v}"
+    );
+    assert!(v["alignment"]["mean_norm"].as_f64().unwrap() > 0.0, "{v}");
+    mte()
+        .args(["attack", "alignment", "--fault", "patch", "--policy"])
+        .arg(bundled())
+        .assert()
+        .failure()
+        .stderr(predicate::str::contains("--patch"));
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("c.json");
+    fs::write(&cfg, r#"{"chunk_sise": 20}"#).unwrap();
+    mte()
+        .args([
+            "train", "act", "--data", "unused", "--steps", "1", "--config",
+        ])
+        .arg(&cfg)
+        .arg("--out")
+        .arg(dir.path().join("o"))
+        .assert()
+        .failure()
+        .stderr(predicate::str::contains("chunk_sise"));
+}

@@ -1,59 +1,26 @@
-//! How aligned an attack's displacements are across the candidates that cover the same
+//! How aligned a corruption's displacements are across the candidates that cover the same
 //! control time: the quantity behind the common-mode boundary (a perfectly aligned
 //! corruption is common-mode, invisible to translation-invariant monitors and unremovable by
 //! equivariant aggregators; the paper measures a median pairwise cosine of 0.712 under PGD).
 //!
-//! The displacement of an attacked query is its executed chunk minus the chunk the policy
-//! gives the same window with the same sampling noise, unattacked (the "twin": the attack's
+//! The displacement of a corrupted query is its executed chunk minus the chunk the policy
+//! gives the clean window with the same sampling noise (the "twin"). For a sensor fault
+//! (blank frames, the patch, ...) the twin is the policy's answer to the window as the
+//! sensors gave it, from a copy of the query's sampling stream. For PGD the attack's
 //! sampling-stream words are recorded and the executed chunk's share replayed on the clean
 //! window, which assumes the attack draws its reference chunk and then the executed one
-//! from that stream, as `mte_policy::attack` does). For every
-//! pair of attacked queries whose chunks both cover a control time, the cosine between their
-//! displacement rows at that time is one sample; the summary is their median and quartiles.
-//! Nothing in the runner changes: a wrapper policy answers each attacked query twice and an
-//! observer pairs the displacements with their query times.
+//! from that stream, as `mte_policy::attack` does. For every pair of corrupted queries whose
+//! chunks both cover a control time, the cosine between their displacement rows at that
+//! time is one sample; the summary is their median and quartiles. The episodes run through
+//! the runner's own stages, so the executed chunks are the ones a sweep would execute.
 
-use std::collections::VecDeque;
-use std::sync::Mutex;
-
-use mte_policy::{AttackablePolicy, ChunkPolicy, ObsNeeds, Observation, PgdConfig, PolicyError};
+use mte_policy::{ChunkPolicy, Observation, PolicyError};
 use rand::RngCore;
 use serde::{Deserialize, Serialize};
 
-use crate::episode::{EpisodeObserver, QueryEvent};
-use crate::pusht::{EpisodeSpec, RolloutError, run_episode_observed};
-
-/// A policy that also answers every attacked query without the attack, from a copy of the
-/// same sampling stream, and queues the difference.
-struct Twin<'p> {
-    inner: &'p (dyn ChunkPolicy + Sync),
-    displacements: Mutex<VecDeque<Vec<f32>>>,
-}
-
-impl ChunkPolicy for Twin<'_> {
-    fn horizon(&self) -> usize {
-        self.inner.horizon()
-    }
-    fn n_obs_steps(&self) -> usize {
-        self.inner.n_obs_steps()
-    }
-    fn action_dim(&self) -> usize {
-        self.inner.action_dim()
-    }
-    fn needs(&self) -> ObsNeeds {
-        self.inner.needs()
-    }
-    fn predict_chunk(
-        &self,
-        history: &[Observation],
-        rng: &mut dyn RngCore,
-    ) -> Result<Vec<f32>, PolicyError> {
-        self.inner.predict_chunk(history, rng)
-    }
-    fn attackable(&self) -> Option<&dyn AttackablePolicy> {
-        Some(self)
-    }
-}
+use crate::environment::{Environment, PushTEnv};
+use crate::episode::NoObserver;
+use crate::pusht::{Episode, EpisodeSpec, Pending, RolloutError, Watchers};
 
 /// A stream that replays recorded words from `at` on (zeros past the end).
 struct Replay<'a> {
@@ -103,69 +70,79 @@ impl RngCore for Recording<'_> {
     }
 }
 
-impl AttackablePolicy for Twin<'_> {
-    fn predict_chunk_attacked(
-        &self,
-        history: &[Observation],
-        pgd: &PgdConfig,
-        attack_rng: &mut dyn RngCore,
-        sample_rng: &mut dyn RngCore,
-    ) -> Result<Vec<f32>, PolicyError> {
-        // The attack draws its reference chunk from the sampling stream first (the clean
-        // chunk with the first noise), then the executed chunk (from the perturbed
-        // observation, with the noise that follows). The twin is the clean chunk with the
-        // executed chunk's noise: record the words, replay the reference chunk's sampling to
-        // find where its share ends, and sample the clean window again from there.
-        let mut rec = Recording {
-            inner: sample_rng,
-            words: Vec::new(),
-        };
-        let attacked = mte_policy::attackable(self.inner)?
-            .predict_chunk_attacked(history, pgd, attack_rng, &mut rec)?;
-        let mut first = Replay {
-            words: &rec.words,
-            at: 0,
-        };
-        self.inner.predict_chunk(history, &mut first)?;
-        let clean = self.inner.predict_chunk(
-            history,
-            &mut Replay {
+/// The chunk `p` executes and, when the schedule corrupted it, its displacement from the
+/// twin (the clean window's chunk with the same sampling noise).
+fn answer_with_twin(
+    policy: &dyn ChunkPolicy,
+    p: &Pending,
+    clean_window: &[Observation],
+) -> Result<(Vec<f32>, Option<Vec<f32>>), PolicyError> {
+    if !p.corrupted() {
+        return Ok((p.answer_alone(policy)?, None));
+    }
+    let (mut crng, mut srng) = p.streams();
+    let (executed, clean) = match p.attack() {
+        Some(cfg) => {
+            // The attack draws its reference chunk from the sampling stream first (the
+            // clean chunk with the first noise), then the executed chunk (from the perturbed
+            // window, with the noise that follows): record the words, replay the reference
+            // chunk's sampling to find where its share ends, and sample again from there.
+            let mut rec = Recording {
+                inner: &mut srng,
+                words: Vec::new(),
+            };
+            let executed = mte_policy::attackable(policy)?.predict_chunk_attacked(
+                p.window(),
+                cfg,
+                &mut crng,
+                &mut rec,
+            )?;
+            let mut first = Replay {
+                words: &rec.words,
+                at: 0,
+            };
+            policy.predict_chunk(clean_window, &mut first)?;
+            let mut rest = Replay {
                 words: &rec.words,
                 at: first.at,
-            },
-        )?;
-        let d: Vec<f32> = attacked.iter().zip(&clean).map(|(a, c)| a - c).collect();
-        if let Ok(mut q) = self.displacements.lock() {
-            q.push_back(d);
+            };
+            (executed, policy.predict_chunk(clean_window, &mut rest)?)
         }
-        Ok(attacked)
+        None => {
+            let executed = policy.predict_chunk(p.window(), &mut srng.clone())?;
+            (executed, policy.predict_chunk(clean_window, &mut srng)?)
+        }
+    };
+    let d = executed.iter().zip(&clean).map(|(a, c)| a - c).collect();
+    Ok((executed, Some(d)))
+}
+
+/// One episode of `spec` through the runner's stages; the corrupted queries' times and
+/// displacements.
+fn episode_displacements(
+    env: &mut dyn Environment,
+    policy: &dyn ChunkPolicy,
+    spec: &EpisodeSpec<'_>,
+) -> Result<Vec<(u64, Vec<f32>)>, RolloutError> {
+    let mut quiet = NoObserver;
+    let mut w = Watchers::new(&mut quiet);
+    let mut ep = Episode::new(env, policy, spec, &mut w)?;
+    let mut out = Vec::new();
+    while !ep.over() {
+        ep.observe(&mut w)?;
+        if let Some(p) = ep.prepare(&mut w)? {
+            let (chunk, displacement) = answer_with_twin(policy, &p, ep.clean_window())?;
+            let t = ep.accept(&p, chunk, &mut w)?.t;
+            if let Some(d) = displacement {
+                out.push((t, d));
+            }
+        }
+        ep.act(&mut w)?;
     }
+    Ok(out)
 }
 
-/// Pairs each attacked query's displacement with its query time.
-struct Collect<'t, 'p> {
-    twin: &'t Twin<'p>,
-    attacked: Vec<(u64, Vec<f32>)>,
-}
-
-impl EpisodeObserver for Collect<'_, '_> {
-    fn on_query(&mut self, e: &QueryEvent<'_>) {
-        if !e.corrupted {
-            return;
-        }
-        if let Some(d) = self
-            .twin
-            .displacements
-            .lock()
-            .ok()
-            .and_then(|mut q| q.pop_front())
-        {
-            self.attacked.push((e.t, d));
-        }
-    }
-}
-
-/// Cosine samples of one episode's attacked queries: every pair covering a control time.
+/// Cosine samples of one episode's corrupted queries: every pair covering a control time.
 pub fn pair_cosines(attacked: &[(u64, Vec<f32>)], t_p: usize, t_o: usize, d: usize) -> Vec<f64> {
     let span = (t_p - t_o) as u64;
     let row = |t: u64, c: &[f32], tau: u64| -> Option<Vec<f64>> {
@@ -197,12 +174,12 @@ pub fn pair_cosines(attacked: &[(u64, Vec<f32>)], t_p: usize, t_o: usize, d: usi
     out
 }
 
-/// The alignment of an attack over episodes.
+/// The alignment of a corruption over episodes.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Alignment {
     /// Episodes run.
     pub episodes: usize,
-    /// Attacked queries.
+    /// Corrupted queries (attacked, or fed a faulty window).
     pub attacked_queries: usize,
     /// Cosine samples (pairs of attacked candidates x shared control times).
     pub pairs: usize,
@@ -214,8 +191,8 @@ pub struct Alignment {
     pub mean_norm: Option<f64>,
 }
 
-/// Runs `specs` (attacked episodes; their fault must be a query attack) and measures the
-/// alignment of the attack's displacements.
+/// Runs `specs` (corrupted episodes: PGD, or a sensor fault) in PushT and measures the
+/// alignment of the corruption's displacements.
 ///
 /// # Errors
 /// An episode's own errors.
@@ -223,21 +200,14 @@ pub fn alignment(
     policy: &(dyn ChunkPolicy + Sync),
     specs: &[EpisodeSpec<'_>],
 ) -> Result<Alignment, RolloutError> {
-    let twin = Twin {
-        inner: policy,
-        displacements: Mutex::new(VecDeque::new()),
-    };
     let (t_p, t_o, d) = (policy.horizon(), policy.n_obs_steps(), policy.action_dim());
     let (mut cos, mut norms, mut attacked) = (Vec::new(), Vec::new(), 0);
     for spec in specs {
-        let mut obs = Collect {
-            twin: &twin,
-            attacked: Vec::new(),
-        };
-        run_episode_observed(&twin, spec, &mut obs)?;
-        attacked += obs.attacked.len();
-        cos.extend(pair_cosines(&obs.attacked, t_p, t_o, d));
-        for (_, c) in &obs.attacked {
+        let mut env = PushTEnv::new(spec.stream);
+        let displaced = episode_displacements(&mut env, policy, spec)?;
+        attacked += displaced.len();
+        cos.extend(pair_cosines(&displaced, t_p, t_o, d));
+        for (_, c) in &displaced {
             norms.extend(
                 c.chunks(d)
                     .map(|r| r.iter().map(|&v| f64::from(v).powi(2)).sum::<f64>().sqrt()),

@@ -605,6 +605,11 @@ impl Pending {
         }
     }
 
+    /// Whether the schedule corrupted this query.
+    pub(crate) fn corrupted(&self) -> bool {
+        self.corrupted
+    }
+
     /// PGD's settings, when PGD attacks this query.
     pub(crate) fn attack(&self) -> Option<&PgdConfig> {
         self.attack.as_ref()
@@ -703,6 +708,11 @@ impl<'e, 's> Episode<'e, 's> {
             steps: 0,
             success: false,
         })
+    }
+
+    /// The newest `T_o` observations as the sensors gave them, before any fault.
+    pub(crate) fn clean_window(&self) -> &[Observation] {
+        &self.frames[self.frames.len() - self.geometry.t_o..]
     }
 
     /// Stage *observe*: the current observation joins the history.

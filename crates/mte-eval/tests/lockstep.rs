@@ -194,6 +194,56 @@ fn alignment_twins_share_the_executed_noise() -> TestResult {
     Ok(())
 }
 
+/// For a sensor fault the twin is the clean window's chunk with the query's own sampling
+/// noise: a zero-sigma noise fault leaves the window as it was, so every displacement is
+/// exactly zero; blank keypoints and real noise displace the chunks.
+#[test]
+fn sensor_fault_twins_share_the_query_noise() -> TestResult {
+    use mte_eval::alignment::alignment;
+    use mte_eval::corruption::{CorruptionSpec, Fault, Schedule, SensorFault};
+    use mte_eval::pusht::{EpisodeSpec, Execution};
+    use mte_eval::sweep::PolicySource as _;
+    let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/policies");
+    let policy = CheckpointSource.load(&assets.join("pusht_keypoints_cpu").to_string_lossy())?;
+    let corruption = |fault: SensorFault| CorruptionSpec {
+        fault: Fault::Sensor(fault),
+        schedule: Schedule::Burst {
+            q: 3,
+            period: None,
+            phase: 0,
+        },
+    };
+    let run = |c: &CorruptionSpec| {
+        let spec = EpisodeSpec {
+            needs: policy.needs(),
+            seed: 100_000,
+            stream: Default::default(),
+            h: 2,
+            max_steps: 40,
+            execution: Execution::Ensemble("median".parse().map_err(|e| format!("{e}"))?),
+            corruption: c,
+            noise_seed: 0,
+            sampling: Default::default(),
+            monitors: &[],
+        };
+        alignment(policy.as_ref(), &[spec]).map_err(|e| e.to_string())
+    };
+    let none = run(&corruption(SensorFault::GaussianNoise { sigma: 0.0 }))?;
+    assert!(none.attacked_queries > 0, "{none:?}");
+    assert_eq!(none.mean_norm, Some(0.0), "{none:?}");
+    assert_eq!(none.pairs, 0, "{none:?}");
+    for fault in [
+        SensorFault::Blank,
+        SensorFault::GaussianNoise { sigma: 20.0 },
+    ] {
+        let r = run(&corruption(fault.clone()))?;
+        assert_eq!(r.attacked_queries, none.attacked_queries, "{fault}");
+        assert!(r.mean_norm.unwrap_or(0.0) > 0.0, "{fault}: {r:?}");
+        assert!(r.pairs > 0, "{fault}: {r:?}");
+    }
+    Ok(())
+}
+
 /// In lockstep an episode's total time is its own work (its stages and its share of the
 /// batched policy calls), not the wall time from its start to its end, which would count
 /// every other episode of the batch: on one worker the totals add up to at most the run's

@@ -12,17 +12,26 @@ use crate::progress::Bar;
 
 /// `mte attack alignment`
 pub fn alignment(cli: &Cli, a: &crate::args::AlignmentArgs) -> Result<()> {
-    use mte_eval::corruption::{CorruptionSpec, Fault, QueryAttack, Schedule};
+    use crate::args::AlignmentFault;
+    use mte_eval::corruption::{CorruptionSpec, Fault, QueryAttack, Schedule, SensorFault};
     use mte_eval::pusht::EpisodeSpec;
     let policy = CheckpointSource
         .load(&a.policy.to_string_lossy())
         .with_context(|| format!("loading {}", a.policy.display()))?;
-    let corruption = CorruptionSpec {
-        fault: Fault::Query(QueryAttack::Pgd(mte_policy::PgdConfig {
+    let fault = match (a.fault, &a.patch) {
+        (AlignmentFault::Pgd, _) => Fault::Query(QueryAttack::Pgd(mte_policy::PgdConfig {
             eps: a.eps,
             iterations: a.iterations,
             ..mte_policy::PgdConfig::default()
         })),
+        (AlignmentFault::Blank, _) => Fault::Sensor(SensorFault::Blank),
+        (AlignmentFault::Patch, Some(path)) => {
+            Fault::Sensor(SensorFault::Patch { path: path.clone() })
+        }
+        (AlignmentFault::Patch, None) => anyhow::bail!("--fault patch needs --patch DIR"),
+    };
+    let corruption = CorruptionSpec {
+        fault,
         schedule: Schedule::Burst {
             q: a.q,
             period: None,
@@ -56,7 +65,7 @@ pub fn alignment(cli: &Cli, a: &crate::args::AlignmentArgs) -> Result<()> {
         )?,
         Format::Text if !cli.quiet => writeln!(
             so,
-            "{} episodes, {} attacked queries, {} candidate pairs: median cosine {}, quartiles {}, mean displacement {} ({secs:.0} s)",
+            "{} episodes, {} corrupted queries, {} candidate pairs: median cosine {}, quartiles {}, mean displacement {} ({secs:.0} s)",
             r.episodes,
             r.attacked_queries,
             r.pairs,

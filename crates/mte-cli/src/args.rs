@@ -678,6 +678,11 @@ pub struct ReportArgs {
     /// last component), cells paired by corruption and h.
     #[arg(long, value_name = "UNDEFENDED:DEFENDED", value_parser = parse_defence)]
     pub defence: Option<mte_eval::report::DefencePair>,
+    /// Add the control table: the cell `ATTACK` read against the cell `CONTROL` per arm
+    /// (e.g. an adversarial patch against a grey square, PGD against random noise of its
+    /// radius); repeatable. Cells of merged runs pair by seed.
+    #[arg(long, value_name = "ATTACK:CONTROL", value_parser = parse_control)]
+    pub control: Vec<mte_eval::report::ControlPair>,
     /// McNemar test on paired success: `exact` (default) or `chi2-cc` (chi-square with
     /// continuity correction).
     #[arg(long, default_value = "exact")]
@@ -686,6 +691,20 @@ pub struct ReportArgs {
     /// into the report; runs the policy of the chosen cell twice.
     #[arg(long)]
     pub figure2: bool,
+}
+
+fn parse_control(s: &str) -> Result<mte_eval::report::ControlPair, String> {
+    match s.split_once(':') {
+        Some((a, c)) if !a.is_empty() && !c.is_empty() && !c.contains(':') => {
+            Ok(mte_eval::report::ControlPair {
+                attack: a.to_string(),
+                control: c.to_string(),
+            })
+        }
+        _ => Err(format!(
+            "`{s}`: expected ATTACK:CONTROL, two cell ids separated by one colon"
+        )),
+    }
 }
 
 fn parse_defence(s: &str) -> Result<mte_eval::report::DefencePair, String> {

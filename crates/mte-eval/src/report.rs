@@ -48,6 +48,7 @@ pub use mte_stats::McNemarTest;
 use crate::label::{policy_label, slug};
 use crate::record::{CellSpec, EpisodeRecord, ErrorRecord, Line, Manifest, StageTimes};
 
+mod control;
 mod defence;
 mod figures;
 mod plot;
@@ -58,6 +59,7 @@ use figures::plots;
 
 use render::{Block, code, delta, est, f3, fmt_p, opt_p, pct, table};
 
+pub use control::{ControlPair, ControlRow, ControlTable};
 pub use defence::{DefencePair, DefenceRow, DefenceTable};
 pub use plot::Plot;
 use plot::{PlotSpec, Point, Series};
@@ -81,6 +83,9 @@ pub struct ReportOptions {
     pub focus_cell: Option<String>,
     /// Compare a defended policy with an undefended one (section 9); none by default.
     pub defence: Option<DefencePair>,
+    /// Attack cells to read against their control cells (the section after the defence
+    /// table); none by default.
+    pub controls: Vec<ControlPair>,
     /// The McNemar test on paired success: exact by default; the continuity-corrected
     /// chi-square (the paper's tables appear to use it for n >= 100) by name.
     pub mcnemar: McNemarTest,
@@ -125,6 +130,18 @@ pub enum ReportError {
         /// The policy given.
         policy: String,
         /// The policies' labels, comma separated.
+        available: String,
+    },
+    /// A cell named for the control table is not in the manifest.
+    #[error(
+        "{role} cell `{cell}` of the control table is not a cell of the run (cells: {available})"
+    )]
+    UnknownControlCell {
+        /// `attack` or `control`.
+        role: &'static str,
+        /// The cell id given.
+        cell: String,
+        /// The run's cell ids, comma separated.
         available: String,
     },
     /// The focus cell given in the options is not in the manifest.
@@ -575,6 +592,8 @@ pub struct Report {
     pub failures: Vec<ErrorRecord>,
     /// The defence table, when [`ReportOptions::defence`] asks for it.
     pub defence: Option<DefenceTable>,
+    /// The control table, when [`ReportOptions::controls`] names pairs.
+    pub controls: Option<ControlTable>,
     /// Remarks on the data (duplicates, unpaired seeds, missing arms).
     pub notes: Vec<String>,
     /// Plots.
@@ -761,6 +780,11 @@ pub fn build(
         Some(pair) => Some(defence::build(&cells, pair, &all_arms, &mut notes)?),
         None => None,
     };
+    let controls = if opts.controls.is_empty() {
+        None
+    } else {
+        Some(control::build(&cells, &opts.controls, &mut notes)?)
+    };
     let plots = plots(&cells, &corrupted, &baseline, &main)?
         .into_iter()
         .map(Plot::new)
@@ -790,6 +814,7 @@ pub fn build(
         overhead,
         failures,
         defence,
+        controls,
         notes,
         plots,
     })
@@ -1941,6 +1966,7 @@ mod tests {
             robust_arm: Some(EWM.into()),
             focus_cell: Some(Q2.into()),
             defence: None,
+            controls: Vec::new(),
             mcnemar: McNemarTest::Exact,
         };
         let r = build(&manifest(), &lines(), &opts).unwrap();
@@ -2061,6 +2087,50 @@ mod tests {
         // Without the option the report has no section 9.
         let plain = build(&m, &l, &ReportOptions::default()).expect("report");
         assert!(plain.defence.is_none() && !plain.markdown().contains("## 9. Defence"));
+    }
+
+    #[test]
+    fn control_table_reads_an_attack_against_its_control_per_arm() {
+        let opts = ReportOptions {
+            controls: vec![ControlPair {
+                attack: Q2.into(),
+                control: Q1.into(),
+            }],
+            ..Default::default()
+        };
+        let r = build(&manifest(), &lines(), &opts).unwrap_or_else(|e| panic!("{e}"));
+        let t = r.controls.as_ref().expect("control table");
+        assert_eq!(t.rows.len(), 2, "one pair x two arms");
+        let ewm = &t.rows[0];
+        assert_eq!((ewm.arm.as_str(), ewm.attack_cell.as_str()), (EWM, Q2));
+        assert_eq!((ewm.control_cell.as_str(), ewm.comparison.n), (Q1, 8));
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let d = ewm.comparison.delta.expect("delta");
+        assert!(
+            (d.mean - (mean(&Q2_EWM) - mean(&Q1_EWM))).abs() < 1e-12,
+            "{d:?}"
+        );
+        let w = mte_stats::wilcoxon_signed_rank(&Q2_EWM, &Q1_EWM).expect("wilcoxon");
+        assert_eq!(ewm.comparison.wilcoxon_p, Some(w.p_value));
+        // The median's seed 107 failed under the attack: 7 pairs.
+        assert_eq!(t.rows[1].comparison.n, 7);
+        let md = r.markdown();
+        assert!(md.contains("## 9. Attacks against their controls"), "{md}");
+        assert!(md.contains("## 10. Clean cells"), "{md}");
+        let e = build(
+            &manifest(),
+            &lines(),
+            &ReportOptions {
+                controls: vec![ControlPair {
+                    attack: Q2.into(),
+                    control: "grey".into(),
+                }],
+                ..Default::default()
+            },
+        )
+        .expect_err("no such cell")
+        .to_string();
+        assert!(e.contains("`grey`") && e.contains(Q1), "{e}");
     }
 
     #[test]

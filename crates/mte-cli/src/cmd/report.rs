@@ -86,6 +86,7 @@ pub fn run(cli: &Cli, a: &ReportArgs) -> Result<()> {
         robust_arm: a.robust.clone(),
         focus_cell: a.cell.clone(),
         defence: a.defence.clone(),
+        controls: a.control.clone(),
         mcnemar: a.mcnemar,
     };
     write_and_print(cli, &a.runs, &out, &opts, a.figure2)

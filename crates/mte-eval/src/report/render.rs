@@ -133,6 +133,7 @@ impl Report {
         self.failures(&mut b);
         self.plots_section(&mut b);
         self.defence_section(&mut b);
+        self.control_section(&mut b);
         self.clean_section(&mut b);
         b
     }
@@ -274,10 +275,10 @@ impl Report {
         b.push(arms_table(f));
     }
 
-    /// The last section (9, or 10 after the defence table): every clean cell, every arm
-    /// against the baseline.
+    /// The last section (9, after the optional defence and control tables): every clean
+    /// cell, every arm against the baseline.
     fn clean_section(&self, b: &mut Vec<Block>) {
-        let number = if self.defence.is_some() { 10 } else { 9 };
+        let number = 9 + usize::from(self.defence.is_some()) + usize::from(self.controls.is_some());
         b.push(Block::Heading(format!(
             "{number}. Clean cells: every arm against the baseline"
         )));
@@ -664,6 +665,13 @@ impl Report {
     fn defence_section(&self, b: &mut Vec<Block>) {
         if let Some(t) = &self.defence {
             b.extend(t.blocks());
+        }
+    }
+
+    /// Section 9 or 10 (when asked for): attacks against their controls.
+    fn control_section(&self, b: &mut Vec<Block>) {
+        if let Some(t) = &self.controls {
+            b.extend(t.blocks(9 + usize::from(self.defence.is_some())));
         }
     }
 

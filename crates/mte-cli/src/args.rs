@@ -641,7 +641,8 @@ pub struct SweepArgs {
     /// Run directory.
     #[arg(long, short, value_name = "DIR")]
     pub out: PathBuf,
-    /// Continue a run in `--out`: finished episodes are skipped.
+    /// Continue a run in `--out`: finished episodes are skipped. The spec may append seeds to
+    /// every cell (raise `count`) to grow a finished run to a larger n.
     #[arg(long)]
     pub resume: bool,
     /// Run only shard `i/n` of the cells (e.g. a Slurm array index); shards may share `--out`.

@@ -10,7 +10,7 @@ use std::fs::{self, File, OpenOptions};
 use std::io::{BufRead, BufReader, Read as _, Seek as _, SeekFrom, Write as _};
 use std::path::{Path, PathBuf};
 
-use crate::record::{Line, Manifest, RUN_FORMAT};
+use crate::record::{CellSpec, Line, Manifest, RUN_FORMAT};
 
 /// Errors of the results store.
 #[derive(Debug, thiserror::Error)]
@@ -62,6 +62,47 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
     }
 }
 
+/// Whether the spec's cells are the stored ones, each with the same seeds or more seeds
+/// appended (a run grows to a larger n: the stored episodes stay paired and valid); anything
+/// else is a mismatch naming the first cell that differs.
+fn check_same_grid(stored: &Manifest, spec: &Manifest, mpath: &Path) -> Result<(), StoreError> {
+    let extends = |a: &CellSpec, b: &CellSpec| {
+        b.seeds.starts_with(&a.seeds)
+            && CellSpec {
+                seeds: b.seeds.clone(),
+                ..a.clone()
+            } == *b
+    };
+    if stored.cells.len() == spec.cells.len()
+        && stored
+            .cells
+            .iter()
+            .zip(&spec.cells)
+            .all(|(a, b)| extends(a, b))
+    {
+        return Ok(());
+    }
+    let detail = stored
+        .cells
+        .iter()
+        .zip(&spec.cells)
+        .find(|(a, b)| !extends(a, b))
+        .map_or_else(
+            || {
+                format!(
+                    "{} cells stored, {} in the spec",
+                    stored.cells.len(),
+                    spec.cells.len()
+                )
+            },
+            |(a, _)| format!("cell {}", a.id),
+        );
+    Err(StoreError::Mismatch {
+        path: mpath.to_path_buf(),
+        detail,
+    })
+}
+
 /// An open run directory.
 #[derive(Debug, Clone)]
 pub struct RunDir {
@@ -85,31 +126,15 @@ impl RunDir {
                 });
             }
             let stored = read_manifest(root)?;
-            if stored.cells != manifest.cells {
-                let detail = stored
-                    .cells
-                    .iter()
-                    .zip(&manifest.cells)
-                    .find(|(a, b)| a != b)
-                    .map_or_else(
-                        || {
-                            format!(
-                                "{} cells stored, {} in the spec",
-                                stored.cells.len(),
-                                manifest.cells.len()
-                            )
-                        },
-                        |(a, _)| format!("cell {}", a.id),
-                    );
-                return Err(StoreError::Mismatch {
-                    path: mpath,
-                    detail,
-                });
-            }
+            check_same_grid(&stored, manifest, &mpath)?;
             let mut merged = stored.clone();
+            merged.cells.clone_from(&manifest.cells);
             merge_machines(&mut merged, manifest);
             if merged != stored {
                 write_manifest(&mpath, &merged)?;
+            }
+            if merged.cells != stored.cells {
+                write_atomic(&root.join("spec.toml"), spec_toml.as_bytes())?;
             }
         } else {
             fs::create_dir_all(root.join("cells")).map_err(io(root))?;
@@ -446,12 +471,26 @@ mod tests {
         let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
         let root = dir.path().join("run");
         RunDir::create(&root, "", &manifest(), false)?;
-        let mut other = manifest();
-        other.cells[0].seeds.push(3);
-        assert!(matches!(
-            RunDir::create(&root, "", &other, true),
-            Err(StoreError::Mismatch { .. })
-        ));
+        // More seeds appended: the run grows, and its manifest and spec say so.
+        let mut more = manifest();
+        more.cells[0].seeds.push(3);
+        RunDir::create(&root, "seeds = 3", &more, true)?;
+        assert_eq!(read_manifest(&root)?.cells[0].seeds, vec![1, 2, 3]);
+        let spec = fs::read_to_string(root.join("spec.toml")).map_err(io(&root))?;
+        assert_eq!(spec, "seeds = 3");
+        // Other seeds, fewer seeds, or another cell: refused.
+        for change in [
+            |m: &mut Manifest| m.cells[0].seeds = vec![1, 5, 3],
+            |m: &mut Manifest| m.cells[0].seeds = vec![1, 2],
+            |m: &mut Manifest| m.cells[0].h = 4,
+        ] {
+            let mut other = more.clone();
+            change(&mut other);
+            assert!(matches!(
+                RunDir::create(&root, "", &other, true),
+                Err(StoreError::Mismatch { .. })
+            ));
+        }
         let path = root.join("cells").join("c0.jsonl");
         fs::write(&path, "{\"kind\":\"episode\"}\n").map_err(io(&path))?;
         match read_lines(&path) {

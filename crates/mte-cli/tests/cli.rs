@@ -945,3 +945,18 @@ fn alignment_of_blank_frames_and_refused_arguments() {
         .failure()
         .stderr(predicate::str::contains("chunk_sise"));
 }
+
+/// `mte report --control` takes `ATTACK:CONTROL`; anything else is refused with the form.
+#[test]
+fn report_control_pairs_need_two_cell_ids() {
+    let dir = tempfile::tempdir().unwrap();
+    for bad in ["nocolon", ":grey", "a:b:c"] {
+        mte()
+            .arg("report")
+            .arg(dir.path())
+            .args(["--control", bad])
+            .assert()
+            .failure()
+            .stderr(predicate::str::contains("ATTACK:CONTROL"));
+    }
+}

@@ -140,52 +140,61 @@ q = [2]
     same_records_every_way(&s, 9)
 }
 
-/// The alignment twin replays the executed chunk's sampling noise on the clean window: with
-/// a zero-radius PGD the attacked chunk is the clean one, so every displacement is exactly
-/// zero; with a real radius they are not.
-#[test]
-fn alignment_twins_share_the_executed_noise() -> TestResult {
-    use mte_eval::alignment::alignment;
-    use mte_eval::corruption::{CorruptionSpec, Fault, QueryAttack, Schedule};
-    use mte_eval::pusht::{EpisodeSpec, Execution};
+/// The alignment of `fault` in bursts of q = 3 over one 40-step episode of the bundled
+/// keypoint policy at h = 2, executed by `arm`.
+fn align(
+    fault: mte_eval::corruption::Fault,
+    arm: &str,
+) -> Result<mte_eval::alignment::Alignment, Box<dyn std::error::Error>> {
+    use mte_eval::corruption::{CorruptionSpec, Schedule};
+    use mte_eval::pusht::EpisodeSpec;
     use mte_eval::sweep::PolicySource as _;
     let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/policies");
     let policy = CheckpointSource.load(&assets.join("pusht_keypoints_cpu").to_string_lossy())?;
-    let corruption = |eps: f64| CorruptionSpec {
-        fault: Fault::Query(QueryAttack::Pgd(mte_policy::PgdConfig {
-            eps,
-            iterations: 2,
-            ..mte_policy::PgdConfig::default()
-        })),
+    let corruption = CorruptionSpec {
+        fault,
         schedule: Schedule::Burst {
             q: 3,
             period: None,
             phase: 0,
         },
     };
-    let run = |c: &CorruptionSpec| {
-        let spec = EpisodeSpec {
-            needs: policy.needs(),
-            seed: 100_000,
-            stream: Default::default(),
-            h: 2,
-            max_steps: 40,
-            execution: Execution::OpenLoop,
-            corruption: c,
-            noise_seed: 0,
-            sampling: Default::default(),
-            monitors: &[],
-        };
-        alignment(policy.as_ref(), &[spec])
+    let spec = EpisodeSpec {
+        needs: policy.needs(),
+        seed: 100_000,
+        stream: Default::default(),
+        h: 2,
+        max_steps: 40,
+        execution: arm.parse()?,
+        corruption: &corruption,
+        noise_seed: 0,
+        sampling: Default::default(),
+        monitors: &[],
     };
-    let zero = run(&corruption(0.0))?;
+    Ok(mte_eval::alignment::alignment(policy.as_ref(), &[spec])?)
+}
+
+/// The alignment twin replays the executed chunk's sampling noise on the clean window: with
+/// a zero-radius PGD the attacked chunk is the clean one, so every displacement is exactly
+/// zero; with a real radius they are not.
+#[test]
+fn alignment_twins_share_the_executed_noise() -> TestResult {
+    use mte_eval::corruption::{Fault, QueryAttack};
+    let pgd = |eps: f64| {
+        Fault::Query(QueryAttack::Pgd(mte_policy::PgdConfig {
+            eps,
+            iterations: 2,
+            ..mte_policy::PgdConfig::default()
+        }))
+    };
+    let zero = align(pgd(0.0), "open-loop")?;
     assert!(zero.attacked_queries > 0, "{zero:?}");
     assert_eq!(zero.mean_norm, Some(0.0), "{zero:?}");
     assert_eq!(
         zero.pairs, 0,
         "zero displacements have no direction: {zero:?}"
     );
-    let real = run(&corruption(0.5))?;
+    let real = align(pgd(0.5), "open-loop")?;
     assert_eq!(real.attacked_queries, zero.attacked_queries);
     assert!(real.mean_norm.unwrap_or(0.0) > 0.0, "{real:?}");
     assert!(real.pairs > 0, "{real:?}");
@@ -199,36 +208,11 @@ fn alignment_twins_share_the_executed_noise() -> TestResult {
 /// exactly zero; blank keypoints and real noise displace the chunks.
 #[test]
 fn sensor_fault_twins_share_the_query_noise() -> TestResult {
-    use mte_eval::alignment::alignment;
-    use mte_eval::corruption::{CorruptionSpec, Fault, Schedule, SensorFault};
-    use mte_eval::pusht::{EpisodeSpec, Execution};
-    use mte_eval::sweep::PolicySource as _;
-    let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/policies");
-    let policy = CheckpointSource.load(&assets.join("pusht_keypoints_cpu").to_string_lossy())?;
-    let corruption = |fault: SensorFault| CorruptionSpec {
-        fault: Fault::Sensor(fault),
-        schedule: Schedule::Burst {
-            q: 3,
-            period: None,
-            phase: 0,
-        },
-    };
-    let run = |c: &CorruptionSpec| {
-        let spec = EpisodeSpec {
-            needs: policy.needs(),
-            seed: 100_000,
-            stream: Default::default(),
-            h: 2,
-            max_steps: 40,
-            execution: Execution::Ensemble("median".parse().map_err(|e| format!("{e}"))?),
-            corruption: c,
-            noise_seed: 0,
-            sampling: Default::default(),
-            monitors: &[],
-        };
-        alignment(policy.as_ref(), &[spec]).map_err(|e| e.to_string())
-    };
-    let none = run(&corruption(SensorFault::GaussianNoise { sigma: 0.0 }))?;
+    use mte_eval::corruption::{Fault, SensorFault};
+    let none = align(
+        Fault::Sensor(SensorFault::GaussianNoise { sigma: 0.0 }),
+        "median",
+    )?;
     assert!(none.attacked_queries > 0, "{none:?}");
     assert_eq!(none.mean_norm, Some(0.0), "{none:?}");
     assert_eq!(none.pairs, 0, "{none:?}");
@@ -236,7 +220,7 @@ fn sensor_fault_twins_share_the_query_noise() -> TestResult {
         SensorFault::Blank,
         SensorFault::GaussianNoise { sigma: 20.0 },
     ] {
-        let r = run(&corruption(fault.clone()))?;
+        let r = align(Fault::Sensor(fault.clone()), "median")?;
         assert_eq!(r.attacked_queries, none.attacked_queries, "{fault}");
         assert!(r.mean_norm.unwrap_or(0.0) > 0.0, "{fault}: {r:?}");
         assert!(r.pairs > 0, "{fault}: {r:?}");

@@ -357,9 +357,28 @@ fn demo_runs_pairs_resumes_and_reports() {
         .success();
     let v: serde_json::Value = serde_json::from_slice(&json.get_output().stdout).unwrap();
     assert!(v["markdown"].as_str().unwrap().contains("median"));
+    // More seeds grow the run: only the new ones run.
+    let grown = mte()
+        .args([
+            "demo",
+            "--episodes",
+            "2",
+            "--q",
+            "0,3",
+            "--workers",
+            "2",
+            "--out",
+        ])
+        .arg(&out)
+        .arg("--policy")
+        .arg(bundled())
+        .assert()
+        .success();
+    let grown = String::from_utf8(grown.get_output().stdout.clone()).unwrap();
+    assert!(grown.contains("4 episodes run, 4 already done"), "{grown}");
     // A different grid in the same directory is refused, naming the way out.
     mte()
-        .args(["demo", "--episodes", "2", "--q", "0,3", "--out"])
+        .args(["demo", "--episodes", "2", "--q", "0,2", "--out"])
         .arg(&out)
         .arg("--policy")
         .arg(bundled())

@@ -979,3 +979,28 @@ fn report_control_pairs_need_two_cell_ids() {
             .stderr(predicate::str::contains("ATTACK:CONTROL"));
     }
 }
+
+/// The bundled ACT checkpoint loads from a fresh clone through the policy seam and drives
+/// PushT under both aggregators: its chunk is 20 actions, and each coverage is a fraction.
+#[test]
+fn bundled_act_policy_runs_ensembled_episodes() {
+    let ckpt = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../assets/policies/pusht_keypoints_act_cpu");
+    let config: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(ckpt.join("config.json")).unwrap()).unwrap();
+    assert_eq!(
+        (config["type"].as_str(), config["chunk_size"].as_u64()),
+        (Some("act"), Some(20))
+    );
+    for arm in ["ewm:0.01", "median"] {
+        let v = json_stdout(
+            mte()
+                .args(["--format", "json", "eval", "policy", "--episodes", "1"])
+                .args(["--max-steps", "30", "--stride", "2", "--execution", arm])
+                .arg("--checkpoint")
+                .arg(&ckpt),
+        );
+        let c = v["mean_max_coverage"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&c), "{arm}: {v}");
+    }
+}

@@ -306,12 +306,12 @@ fn bundled_image_policy_runs_an_episode() {
 fn demo_runs_pairs_resumes_and_reports() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("demo");
-    let run = || {
+    let run = |episodes: &str| {
         mte()
             .args([
                 "demo",
                 "--episodes",
-                "1",
+                episodes,
                 "--q",
                 "0,3",
                 "--workers",
@@ -324,7 +324,7 @@ fn demo_runs_pairs_resumes_and_reports() {
             .assert()
             .success()
     };
-    let first = String::from_utf8(run().get_output().stdout.clone()).unwrap();
+    let first = String::from_utf8(run("1").get_output().stdout.clone()).unwrap();
     assert!(
         first.contains("2 cells: 4 episodes run, 0 already done, 0 errors"),
         "{first}"
@@ -347,7 +347,7 @@ fn demo_runs_pairs_resumes_and_reports() {
         })
         .sum();
     assert_eq!(lines, 4);
-    let again = String::from_utf8(run().get_output().stdout.clone()).unwrap();
+    let again = String::from_utf8(run("1").get_output().stdout.clone()).unwrap();
     assert!(again.contains("0 episodes run, 4 already done"), "{again}");
     // The report alone, from the files, as JSON.
     let json = mte()
@@ -358,23 +358,7 @@ fn demo_runs_pairs_resumes_and_reports() {
     let v: serde_json::Value = serde_json::from_slice(&json.get_output().stdout).unwrap();
     assert!(v["markdown"].as_str().unwrap().contains("median"));
     // More seeds grow the run: only the new ones run.
-    let grown = mte()
-        .args([
-            "demo",
-            "--episodes",
-            "2",
-            "--q",
-            "0,3",
-            "--workers",
-            "2",
-            "--out",
-        ])
-        .arg(&out)
-        .arg("--policy")
-        .arg(bundled())
-        .assert()
-        .success();
-    let grown = String::from_utf8(grown.get_output().stdout.clone()).unwrap();
+    let grown = String::from_utf8(run("2").get_output().stdout.clone()).unwrap();
     assert!(grown.contains("4 episodes run, 4 already done"), "{grown}");
     // A different grid in the same directory is refused, naming the way out.
     mte()

@@ -57,7 +57,7 @@ mod roc;
 
 use figures::plots;
 
-use render::{Block, code, delta, est, f3, fmt_p, opt_p, pct, table};
+use render::{Block, code, delta, est, est_rate, f3, fmt_p, opt_p, pct, table};
 
 pub use control::{ControlPair, ControlRow, ControlTable};
 pub use defence::{DefencePair, DefenceRow, DefenceTable};
@@ -691,6 +691,22 @@ impl<'a> CellData<'a> {
     }
 }
 
+/// A row's Holm-adjusted `(Wilcoxon, McNemar)` p-values.
+type HolmPair = (Option<f64>, Option<f64>);
+
+/// Holm over the rows' Wilcoxon p-values and, separately, their McNemar p-values (a row
+/// without a comparison, or without a test, has none), per row as `(Wilcoxon, McNemar)`.
+fn holm_both(rows: &[Option<&Comparison>], over: &str) -> Result<Vec<HolmPair>, ReportError> {
+    let pw: Vec<Option<f64>> = rows.iter().map(|c| c.and_then(|c| c.wilcoxon_p)).collect();
+    let pm: Vec<Option<f64>> = rows
+        .iter()
+        .map(|c| c.and_then(|c| c.mcnemar.map(|m| m.p_value)))
+        .collect();
+    let hw = holm_opt(&pw, &format!("Holm over {over} (Wilcoxon)"))?;
+    let hm = holm_opt(&pm, &format!("Holm over {over} (McNemar)"))?;
+    Ok(hw.into_iter().zip(hm).collect())
+}
+
 /// Holm over the defined p-values, scattered back.
 fn holm_opt(ps: &[Option<f64>], what: &str) -> Result<Vec<Option<f64>>, ReportError> {
     let defined: Vec<f64> = ps.iter().flatten().copied().collect();
@@ -981,21 +997,10 @@ fn main_rows(
             recovered,
         });
     }
-    let pw: Vec<Option<f64>> = main
-        .iter()
-        .map(|r| r.comparison.as_ref().and_then(|c| c.wilcoxon_p))
-        .collect();
-    let pm: Vec<Option<f64>> = main
-        .iter()
-        .map(|r| {
-            r.comparison
-                .as_ref()
-                .and_then(|c| c.mcnemar.map(|m| m.p_value))
-        })
-        .collect();
-    let hw = holm_opt(&pw, "Holm over the main table (Wilcoxon)")?;
-    let hm = holm_opt(&pm, "Holm over the main table (McNemar)")?;
-    for ((r, w), m) in main.iter_mut().zip(hw).zip(hm) {
+    let comparisons: Vec<Option<&Comparison>> =
+        main.iter().map(|r| r.comparison.as_ref()).collect();
+    let adjusted = holm_both(&comparisons, "the main table")?;
+    for (r, (w, m)) in main.iter_mut().zip(adjusted) {
         r.holm_wilcoxon = w;
         r.holm_mcnemar = m;
     }
@@ -1310,21 +1315,10 @@ fn focus_table(
             holm_mcnemar: None,
         });
     }
-    let pw: Vec<Option<f64>> = rows
-        .iter()
-        .map(|r| r.vs_baseline.as_ref().and_then(|c| c.wilcoxon_p))
-        .collect();
-    let pm: Vec<Option<f64>> = rows
-        .iter()
-        .map(|r| {
-            r.vs_baseline
-                .as_ref()
-                .and_then(|c| c.mcnemar.map(|m| m.p_value))
-        })
-        .collect();
-    let hw = holm_opt(&pw, "Holm over arms (Wilcoxon)")?;
-    let hm = holm_opt(&pm, "Holm over arms (McNemar)")?;
-    for ((r, w), m) in rows.iter_mut().zip(hw).zip(hm) {
+    let comparisons: Vec<Option<&Comparison>> =
+        rows.iter().map(|r| r.vs_baseline.as_ref()).collect();
+    let adjusted = holm_both(&comparisons, "arms")?;
+    for (r, (w, m)) in rows.iter_mut().zip(adjusted) {
         r.holm_wilcoxon = w;
         r.holm_mcnemar = m;
     }

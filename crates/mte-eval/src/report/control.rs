@@ -13,7 +13,8 @@
 use serde::Serialize;
 
 use super::{
-    Block, CellData, Comparison, ReportError, code, compare, delta, est, holm_opt, opt_p, table,
+    Block, CellData, Comparison, ReportError, code, compare, delta, est_rate, holm_both, opt_p,
+    table,
 };
 
 /// One attack cell and the control cell it is read against (cell ids).
@@ -99,14 +100,9 @@ pub(super) fn build(
             ));
         }
     }
-    let pw: Vec<Option<f64>> = rows.iter().map(|r| r.comparison.wilcoxon_p).collect();
-    let pm: Vec<Option<f64>> = rows
-        .iter()
-        .map(|r| r.comparison.mcnemar.map(|m| m.p_value))
-        .collect();
-    let hw = holm_opt(&pw, "Holm over the control table (Wilcoxon)")?;
-    let hm = holm_opt(&pm, "Holm over the control table (McNemar)")?;
-    for ((r, w), m) in rows.iter_mut().zip(hw).zip(hm) {
+    let comparisons: Vec<Option<&Comparison>> = rows.iter().map(|r| Some(&r.comparison)).collect();
+    let adjusted = holm_both(&comparisons, "the control table")?;
+    for (r, (w, m)) in rows.iter_mut().zip(adjusted) {
         r.holm_wilcoxon = w;
         r.holm_mcnemar = m;
     }
@@ -133,10 +129,6 @@ impl ControlTable {
             b.push(Block::Para("No pair shares an arm.".into()));
             return b;
         }
-        let rate = |e: Option<&super::Estimate>, s: Option<f64>| match s {
-            Some(s) => format!("{} ({}%)", est(e), super::pct(s)),
-            None => est(e),
-        };
         let rows = self
             .rows
             .iter()
@@ -147,8 +139,8 @@ impl ControlTable {
                     code(&r.control_cell),
                     code(&r.arm),
                     c.n.to_string(),
-                    rate(c.baseline.as_ref(), c.baseline_success),
-                    rate(c.other.as_ref(), c.other_success),
+                    est_rate(c.baseline.as_ref(), c.baseline_success),
+                    est_rate(c.other.as_ref(), c.other_success),
                     delta(c.delta.as_ref()),
                     opt_p(c.wilcoxon_p),
                     opt_p(r.holm_wilcoxon),

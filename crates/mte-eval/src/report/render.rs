@@ -51,6 +51,14 @@ pub(super) fn est(e: Option<&Estimate>) -> String {
     }
 }
 
+/// An estimate with its success rate in parentheses, when there is one.
+pub(super) fn est_rate(e: Option<&Estimate>, success: Option<f64>) -> String {
+    match success {
+        Some(s) => format!("{} ({}%)", est(e), pct(s)),
+        None => est(e),
+    }
+}
+
 pub(super) fn delta(e: Option<&Estimate>) -> String {
     match e {
         Some(Estimate {
@@ -199,10 +207,6 @@ impl Report {
                 .iter()
                 .map(|r| {
                     let c = r.comparison.as_ref();
-                    let with_rate = |e: Option<&Estimate>, s: Option<f64>| match s {
-                        Some(s) => format!("{} ({}%)", est(e), pct(s)),
-                        None => est(e),
-                    };
                     vec![
                         code(&r.cell),
                         r.corruption.clone(),
@@ -215,11 +219,11 @@ impl Report {
                             || "—".into(),
                             |k| format!("{} ({})", delta(k.delta.as_ref()), opt_p(k.wilcoxon_p)),
                         ),
-                        with_rate(
+                        est_rate(
                             c.and_then(|c| c.baseline.as_ref()),
                             c.and_then(|c| c.baseline_success),
                         ),
-                        with_rate(
+                        est_rate(
                             c.and_then(|c| c.other.as_ref()),
                             c.and_then(|c| c.other_success),
                         ),

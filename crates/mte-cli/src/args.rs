@@ -976,12 +976,19 @@ pub struct FinetuneArgs {
     /// Clean embedding the consistency term ties the patched one to.
     #[arg(long, value_enum, default_value_t = AnchorArg::Original)]
     pub anchor: AnchorArg,
+    /// Weight of the clean-feature term: the tuned encoder's embedding of the clean frames
+    /// tied to the original encoder's (an mte extension; 0, the protocol, leaves it off).
+    #[arg(long, default_value_t = 0.0)]
+    pub clean_features: f64,
     /// Windows per batch.
     #[arg(long, default_value_t = 16)]
     pub batch_size: usize,
     /// Regenerate the patch against the current encoder every step.
     #[arg(long)]
     pub regenerate: bool,
+    /// Also save the policy every N steps, as `OUT/step-N` (for the clean-cost curve).
+    #[arg(long, value_name = "N")]
+    pub checkpoint_every: Option<usize>,
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,

@@ -255,13 +255,28 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
             crate::args::AnchorArg::Original => Anchor::Original,
             crate::args::AnchorArg::Current => Anchor::Current,
         },
+        clean_features: a.clean_features,
         batch_size: a.batch_size,
         regenerate: a.regenerate,
         seed: a.seed,
         ..FinetuneConfig::default()
     };
+    if a.checkpoint_every == Some(0) {
+        anyhow::bail!("--checkpoint-every 0: expected a step count >= 1");
+    }
     let t0 = std::time::Instant::now();
     let bar = Bar::for_cli(cli, "fine-tune", cfg.steps);
+    // The current values of every variable, by name, as a checkpoint.
+    let save = |dir: &std::path::Path| -> Result<(), mte_policy::PolicyError> {
+        let weights: std::collections::HashMap<String, candle_core::Tensor> = varmap
+            .data()
+            .lock()
+            .map_err(|_| candle_core::Error::Msg("variable map poisoned".into()))?
+            .iter()
+            .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+            .collect();
+        mte_policy::checkpoint::save(dir, policy.config(), &weights, policy.stats())
+    };
     let report = finetune_encoder(
         &policy,
         &varmap,
@@ -269,19 +284,16 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
         &texture,
         meta.side,
         &cfg,
-        &|s, l| {
-            bar.set(s as u64 + 1, Some(format!("loss {l:.4}")));
+        &mut |s, l| {
+            bar.set(s as u64, Some(format!("loss {l:.4}")));
+            match a.checkpoint_every {
+                Some(n) if s % n == 0 && s < cfg.steps => save(&a.out.join(format!("step-{s}"))),
+                _ => Ok(()),
+            }
         },
     )?;
     bar.finish();
-    let weights: std::collections::HashMap<String, candle_core::Tensor> = varmap
-        .data()
-        .lock()
-        .map_err(|_| anyhow::anyhow!("variable map poisoned"))?
-        .iter()
-        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
-        .collect();
-    mte_policy::checkpoint::save(&a.out, policy.config(), &weights, policy.stats())?;
+    save(&a.out)?;
     let secs = t0.elapsed().as_secs_f64();
     let summary = serde_json::json!({
         "policy": a.policy, "patch": a.patch, "config": cfg, "report": {
@@ -289,6 +301,8 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
             "first_loss": report.first_loss, "last_loss": report.last_loss,
             "first_consistency": report.first_consistency,
             "last_consistency": report.last_consistency,
+            "first_clean_drift": report.first_clean_drift,
+            "last_clean_drift": report.last_clean_drift,
         }, "seconds": secs,
     });
     std::fs::write(a.out.join("finetune.json"), format!("{summary:#}\n"))

@@ -138,6 +138,11 @@ pub struct Workspace {
     /// `decay[k] = exp(-decay_m * k)`, cached for the last coefficient used.
     decay: Vec<f64>,
     decay_m: f64,
+    /// `decay_totals[o][n]`: the sum of the `n` weights [`exp_weights`](Self::exp_weights)
+    /// makes in order `o` (0 oldest-heavy, 1 newest-heavy) for `decay_m`, NaN until first
+    /// needed: summing 100 weights is a chain of dependent adds that cost more than the
+    /// weighted rows themselves, and `n` alternates between steps at `h > 1`.
+    decay_totals: [Vec<f64>; 2],
     /// `median_nets[n]`: the pruned median network for `n` rows.
     median_nets: Vec<Vec<(u16, u16)>>,
 }
@@ -165,6 +170,7 @@ impl Workspace {
             acc2: vec![0.0; dim],
             decay: vec![1.0; capacity],
             decay_m: 0.0,
+            decay_totals: [vec![f64::NAN; capacity + 1], vec![f64::NAN; capacity + 1]],
             median_nets: nets,
         }
     }
@@ -182,12 +188,14 @@ impl Workspace {
                 *w = (-m * k as f64).exp();
             }
             self.decay_m = m;
+            self.decay_totals.iter_mut().for_each(|t| t.fill(f64::NAN));
         }
     }
 
     /// Fills `score[..n]` with exponential weights for `n` oldest-first candidates:
-    /// `exp(-|m| i)` when `oldest_heavy`, else `exp(-|m| (n - 1 - i))`.
-    fn exp_weights(&mut self, m: f64, n: usize, oldest_heavy: bool) {
+    /// `exp(-|m| i)` when `oldest_heavy`, else `exp(-|m| (n - 1 - i))`, and returns their sum
+    /// taken in candidate order from 0 (remembered for the same `m`, `n` and order).
+    fn exp_weights(&mut self, m: f64, n: usize, oldest_heavy: bool) -> f64 {
         self.ensure_decay(m);
         let (decay, w) = (&self.decay[..n], &mut self.score[..n]);
         if oldest_heavy {
@@ -197,6 +205,11 @@ impl Workspace {
                 *wi = *di;
             }
         }
+        let known = &mut self.decay_totals[usize::from(!oldest_heavy)][n];
+        if known.is_nan() {
+            *known = w.iter().fold(0.0, |t, &x| t + x);
+        }
+        *known
     }
 
     fn check(&self, c: &Candidates<'_>, out: &[f32]) -> Result<(), AggregateError> {
@@ -651,5 +664,40 @@ mod tests {
                 got: 1
             })
         );
+    }
+
+    /// The exp-weighted mean remembers its weights' sum per count, order and coefficient; a
+    /// workspace reused across counts (as at h > 1), orders and coefficients must give the
+    /// bits of a fresh workspace, whose sum is computed at the call.
+    #[test]
+    fn remembered_weight_sums_give_a_fresh_workspace_bits() {
+        let dim = 3;
+        let vals: Vec<f32> = (0..40 * dim)
+            .map(|i| ((i * 37 % 101) as f32 * 0.731).sin() * 50.0)
+            .collect();
+        let mut reused = Workspace::new(40, dim);
+        let steps = [
+            (7, 0.01),
+            (8, 0.01),
+            (7, 0.01),
+            (40, -0.3),
+            (8, 0.5),
+            (40, 0.01),
+        ];
+        for order in [WeightOrder::OldestFirst, WeightOrder::NewestFirst] {
+            for &(n, m) in &steps {
+                let c = Candidates::new(&vals[..n * dim], dim).unwrap();
+                let agg = Aggregator::ExpWeightedMean { m, order };
+                let (mut a, mut b) = ([0f32; 3], [0f32; 3]);
+                agg.aggregate(&c, &mut reused, &mut a).unwrap();
+                agg.aggregate(&c, &mut Workspace::new(40, dim), &mut b)
+                    .unwrap();
+                assert_eq!(
+                    a.map(f32::to_bits),
+                    b.map(f32::to_bits),
+                    "{n} {m} {order:?}"
+                );
+            }
+        }
     }
 }

@@ -2,12 +2,13 @@
 
 use super::{Candidates, WeightOrder, Workspace};
 
-/// `out = sum_i w_i x_i / sum_i w_i` with `w = ws.score[..n]`, accumulated in f64, row by
-/// row in candidate order (so every path gives the same bits).
-fn weighted_mean(c: &Candidates<'_>, ws: &mut Workspace, out: &mut [f32]) {
+/// `out = sum_i w_i x_i / total` with `w = ws.score[..n]`, accumulated in f64, row by row in
+/// candidate order (so every path gives the same bits). `total` is `sum_i w_i` summed in
+/// candidate order from 0, which the callers know without summing at every step.
+fn weighted_mean(c: &Candidates<'_>, ws: &mut Workspace, total: f64, out: &mut [f32]) {
     let (d, n) = (c.dim(), c.len());
     let w = &ws.score[..n];
-    let total: f64 = w.iter().fold(0.0, |t, &x| t + x);
+    debug_assert_eq!(total, w.iter().fold(0.0, |t, &x| t + x));
     match c.stride() {
         4 => weighted_rows::<4>(c.values(), w, &mut ws.acc),
         8 => weighted_rows::<8>(c.values(), w, &mut ws.acc),
@@ -57,12 +58,13 @@ pub(super) fn exp_weighted_mean(
     out: &mut [f32],
 ) {
     let oldest_heavy = (order == WeightOrder::OldestFirst) == (m >= 0.0);
-    ws.exp_weights(m, c.len(), oldest_heavy);
-    weighted_mean(c, ws, out);
+    let total = ws.exp_weights(m, c.len(), oldest_heavy);
+    weighted_mean(c, ws, total, out);
 }
 
 /// Uniform mean.
 pub(super) fn mean(c: &Candidates<'_>, ws: &mut Workspace, out: &mut [f32]) {
     ws.score[..c.len()].fill(1.0);
-    weighted_mean(c, ws, out);
+    // A sum of n ones in f64 is exactly n (n is far below 2^53).
+    weighted_mean(c, ws, c.len() as f64, out);
 }

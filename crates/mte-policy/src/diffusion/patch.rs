@@ -406,8 +406,8 @@ impl std::fmt::Display for Anchor {
 }
 
 /// Encoder fine-tuning settings. Defaults: the protocol's 3000 steps at lr 1e-5; consistency
-/// weight 1 towards the original encoder's clean embedding; batches of 16 windows; the patch
-/// fixed (no regeneration).
+/// weight 1 towards the original encoder's clean embedding; no clean-feature term; batches
+/// of 16 windows; the patch fixed (no regeneration).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct FinetuneConfig {
@@ -419,6 +419,12 @@ pub struct FinetuneConfig {
     pub consistency: f64,
     /// The clean embedding the consistency term ties the patched one to.
     pub anchor: Anchor,
+    /// Weight μ of the clean-feature term `μ · mean ‖f_θ(x) − f_θ0(x)‖²`: the encoder being
+    /// tuned, on the clean frames, against its frozen copy from before fine-tuning (the
+    /// features the frozen denoising head was trained on). An mte extension, 0 (off) by
+    /// default: the protocol trains on patched batches only, and nothing there keeps the
+    /// clean embedding where the head expects it.
+    pub clean_features: f64,
     /// Windows per batch.
     pub batch_size: usize,
     /// Regenerate the patch against the current encoder every step (one ascent step).
@@ -436,6 +442,7 @@ impl Default for FinetuneConfig {
             lr: 1e-5,
             consistency: 1.0,
             anchor: Anchor::Original,
+            clean_features: 0.0,
             batch_size: 16,
             regenerate: false,
             regenerate_step: 1.5e-3,
@@ -458,12 +465,13 @@ impl FinetuneConfig {
                 return Err(config_err(name, v, "a finite value > 0"));
             }
         }
-        if !(self.consistency.is_finite() && self.consistency >= 0.0) {
-            return Err(config_err(
-                "consistency",
-                self.consistency,
-                "a finite weight >= 0",
-            ));
+        for (name, v) in [
+            ("consistency", self.consistency),
+            ("clean_features", self.clean_features),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(config_err(name, v, "a finite weight >= 0"));
+            }
         }
         Ok(())
     }
@@ -484,6 +492,11 @@ pub struct FinetuneReport {
     pub first_consistency: f64,
     /// See `first_consistency`.
     pub last_consistency: f64,
+    /// Mean clean-feature drift `mean ‖f_θ(x) − f_θ0(x)‖²` (unweighted) over the first and
+    /// last up-to-100 steps; `None` when the term is off.
+    pub first_clean_drift: Option<f64>,
+    /// See `first_clean_drift`.
+    pub last_clean_drift: Option<f64>,
     /// The patch at the end (changed only when regenerating), `(3, side, side)`.
     pub texture: Vec<f32>,
 }
@@ -500,7 +513,9 @@ fn frozen_copy(policy: &DiffusionPolicy, varmap: &VarMap) -> Result<DiffusionPol
 
 /// Fine-tune the image encoder of `policy` (whose weights live in `varmap`, see
 /// `checkpoint::load_trainable`) against `texture (3, side, side)`; only variables under
-/// `diffusion.rgb_encoder.` change. `progress(step, loss)` is called every step.
+/// `diffusion.rgb_encoder.` change. `after_step(steps done, loss)` is called after every
+/// step, with `varmap` holding the weights of that many steps (to save checkpoints along
+/// the way); its error stops fine-tuning.
 pub fn finetune_encoder(
     policy: &DiffusionPolicy,
     varmap: &VarMap,
@@ -508,7 +523,7 @@ pub fn finetune_encoder(
     texture: &[f32],
     side: usize,
     cfg: &FinetuneConfig,
-    progress: &dyn Fn(usize, f64),
+    after_step: &mut dyn FnMut(usize, f64) -> Result<(), PolicyError>,
 ) -> Result<FinetuneReport, PolicyError> {
     cfg.validate()?;
     let (h, w) = frame_hw(policy)?;
@@ -546,13 +561,15 @@ pub fn finetune_encoder(
     let win = Windows::new(data, policy.config(), false);
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let dev = policy.device();
-    // The anchor is a constant copy of the whole policy as it is now (only its encoder runs).
-    let original = match cfg.anchor {
-        Anchor::Original => Some(frozen_copy(policy, varmap)?),
-        Anchor::Current => None,
-    };
+    // The original encoder is a constant copy of the whole policy as it is now (only its
+    // encoder runs); the current one's clean features are needed by the `Current` anchor and
+    // by the clean-feature term.
+    let keep_clean = cfg.clean_features > 0.0;
+    let original = (cfg.anchor == Anchor::Original || keep_clean)
+        .then(|| frozen_copy(policy, varmap))
+        .transpose()?;
     let mut patch = Tensor::from_vec(texture.to_vec(), (3, side, side), dev)?;
-    let (mut losses, mut cons) = (Vec::new(), Vec::new());
+    let (mut losses, mut cons, mut drift) = (Vec::new(), Vec::new(), Vec::new());
     for step in 0..cfg.steps {
         let b = batch(policy, data, &win, cfg.batch_size, &mut rng)?;
         let clean = images(&b)?;
@@ -573,13 +590,25 @@ pub fn finetune_encoder(
         let f_att = policy.image_features(&attacked)?;
         let cond = policy.global_cond_from_features(&b.obs, Some(&f_att))?;
         let task = policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)?;
-        let f_clean = original
+        let f_orig = original
             .as_ref()
-            .unwrap_or(policy)
-            .image_features(clean)?
-            .detach();
-        let consistency = (f_att - f_clean)?.sqr()?.sum(D::Minus1)?.mean_all()?;
-        let total = (task + (&consistency * cfg.consistency)?)?;
+            .map(|o| o.image_features(clean).map(|f| f.detach()))
+            .transpose()?;
+        let f_now = (keep_clean || cfg.anchor == Anchor::Current)
+            .then(|| policy.image_features(clean))
+            .transpose()?;
+        let anchor = match cfg.anchor {
+            Anchor::Original => f_orig.clone(),
+            Anchor::Current => f_now.as_ref().map(Tensor::detach),
+        }
+        .ok_or_else(|| config_err("anchor", cfg.anchor, "a clean embedding"))?;
+        let consistency = (f_att - anchor)?.sqr()?.sum(D::Minus1)?.mean_all()?;
+        let mut total = (task + (&consistency * cfg.consistency)?)?;
+        if let (true, Some(now), Some(orig)) = (keep_clean, &f_now, &f_orig) {
+            let d = (now - orig)?.sqr()?.sum(D::Minus1)?.mean_all()?;
+            total = (total + (&d * cfg.clean_features)?)?;
+            drift.push(f64::from(d.to_dtype(DType::F32)?.to_scalar::<f32>()?));
+        }
         let grads = total.backward()?;
         // Only the encoder's variables are in the optimiser: the denoising head is frozen.
         opt.step(&grads)?;
@@ -588,10 +617,14 @@ pub fn finetune_encoder(
         cons.push(f64::from(
             consistency.to_dtype(DType::F32)?.to_scalar::<f32>()?,
         ));
-        progress(step, l);
+        after_step(step + 1, l)?;
     }
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let k = losses.len().min(100);
+    let ends = |v: &[f64]| {
+        let k = v.len().min(100);
+        (k > 0).then(|| (mean(&v[..k]), mean(&v[v.len() - k..])))
+    };
     Ok(FinetuneReport {
         steps: cfg.steps,
         encoder_tensors,
@@ -599,6 +632,8 @@ pub fn finetune_encoder(
         last_loss: mean(&losses[losses.len() - k..]),
         first_consistency: mean(&cons[..k]),
         last_consistency: mean(&cons[cons.len() - k..]),
+        first_clean_drift: ends(&drift).map(|e| e.0),
+        last_clean_drift: ends(&drift).map(|e| e.1),
         texture: patch.flatten_all()?.to_vec1::<f32>()?,
     })
 }

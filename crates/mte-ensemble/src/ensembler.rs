@@ -156,6 +156,10 @@ fn all_finite(values: &[f32]) -> bool {
         == 0
 }
 
+/// Rings of rows above this size (bytes) take the large-chunk paths: half a typical 32-48 KiB
+/// L1 data cache.
+const LARGE_RING_BYTES: usize = 16 * 1024;
+
 /// [`all_finite`] for a whole chunk, compiled for AVX-512, AVX2 and the baseline and chosen
 /// at run time: at ACT's `T_p = 100`, `d = 14` the baseline's 4-lane check of every inserted
 /// chunk cost more than the copy it guards.
@@ -208,6 +212,10 @@ pub struct TemporalEnsembler<A: Aggregate = Aggregator> {
     lookahead: usize,
     aggregator: A,
     bracket_diagnostics: bool,
+    /// Whether the ring of rows outgrows L1 (ACT's `T_p = 100`, not Diffusion Policy's 16):
+    /// then the gather prefetches and the insert's check is the dispatched wide one, which
+    /// at small chunks would cost more than they save.
+    large: bool,
     /// `capacity * span * dim` values: slot `s`, executable row `r`, coordinate `j`.
     rows: Vec<f32>,
     slots: Vec<ChunkSlot>,
@@ -257,6 +265,7 @@ impl<A: Aggregate> TemporalEnsembler<A> {
             lookahead,
             aggregator,
             bracket_diagnostics: options.bracket_diagnostics,
+            large: capacity * span * dim * std::mem::size_of::<f32>() > LARGE_RING_BYTES,
             rows: vec![0.0; capacity * span * dim],
             slots: vec![ChunkSlot::default(); capacity],
             row_finite: vec![true; capacity * span],
@@ -395,7 +404,11 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         let executable = &chunk[self.geometry.first_executable_row() * d..];
         let width = span * d;
         self.rows[slot * width..(slot + 1) * width].copy_from_slice(executable);
-        let finite = chunk_finite(executable);
+        let finite = if self.large {
+            chunk_finite(executable)
+        } else {
+            all_finite(executable)
+        };
         if !finite {
             for (flag, row) in self.row_finite[slot * span..(slot + 1) * span]
                 .iter_mut()
@@ -554,7 +567,9 @@ impl<A: Aggregate> TemporalEnsembler<A> {
                     break 'runs; // unreachable: `cand` holds `span` rows, one per live chunk
                 };
                 let src = &chunk[offset * d..];
-                prefetch_next_row(src, d);
+                if self.large {
+                    prefetch_next_row(src, d);
+                }
                 if D > 0 {
                     row[..D].copy_from_slice(&src[..D]);
                 } else {

@@ -527,60 +527,47 @@ impl<A: Aggregate> TemporalEnsembler<A> {
     /// Copies the finite candidates for `tau` into `cand` (rows padded to `stride`), oldest
     /// first, and counts them. `D` is the action dimension when known at compile time, so
     /// that the row copy is a few moves instead of a `memcpy` call, or 0 for any dimension.
-    ///
-    /// The live chunks are slots `head..` (wrapping), in query order, walked as the ring's
-    /// two contiguous runs so that no slot index is wrapped or bounds-checked per row; those
-    /// with a query time after `tau` come last and are not candidates yet.
     #[inline]
     fn gather<const D: usize>(&mut self, tau: u64) -> Gathered {
-        let (d, span) = (self.dim, self.span);
+        let (d, stride, span) = (self.dim, self.stride, self.span);
         debug_assert!(D == 0 || D == d);
         let width = span * d;
-        let end = self.head + self.len;
-        let runs = if end <= self.capacity {
-            [self.head..end, 0..0]
-        } else {
-            [self.head..self.capacity, 0..end - self.capacity]
-        };
         let mut g = Gathered::default();
-        let mut dst = self
-            .cand
-            .chunks_exact_mut(self.stride)
-            .zip(self.cand_corrupted.iter_mut());
-        'runs: for run in runs {
-            let metas = self.slots[run.clone()].iter();
-            let chunks = self.rows[run.start * width..run.end * width].chunks_exact(width);
-            for (slot, (meta, chunk)) in run.zip(metas.zip(chunks)) {
-                if meta.t_query > tau {
-                    break 'runs;
-                }
-                let offset = (tau - meta.t_query) as usize;
-                debug_assert!(offset < span);
-                g.newest = meta.t_query;
-                g.m += 1;
-                g.q += usize::from(meta.corrupted);
-                if !meta.finite && !self.row_finite[slot * span + offset] {
-                    g.excluded_corrupted += usize::from(meta.corrupted);
-                    continue;
-                }
-                let Some((row, flag)) = dst.next() else {
-                    break 'runs; // unreachable: `cand` holds `span` rows, one per live chunk
-                };
-                let src = &chunk[offset * d..];
-                if self.large {
-                    prefetch_next_row(src, d);
-                }
-                if D > 0 {
-                    row[..D].copy_from_slice(&src[..D]);
-                } else {
-                    row[..d].copy_from_slice(&src[..d]);
-                }
-                *flag = meta.corrupted;
-                g.used += 1;
+        // The live chunks are slots head.. (wrapping), in query order; those with a query
+        // time after `tau` come last and are not candidates yet.
+        let mut slot = self.head;
+        for k in 0..self.len {
+            if k > 0 {
+                slot = self.wrap(slot + 1);
             }
-        }
-        if g.m > 0 {
-            g.oldest = self.slots[self.head].t_query;
+            let meta = self.slots[slot];
+            if meta.t_query > tau {
+                break;
+            }
+            let offset = (tau - meta.t_query) as usize;
+            debug_assert!(offset < span);
+            if g.m == 0 {
+                g.oldest = meta.t_query;
+            }
+            g.newest = meta.t_query;
+            g.m += 1;
+            g.q += usize::from(meta.corrupted);
+            if !meta.finite && !self.row_finite[slot * span + offset] {
+                g.excluded_corrupted += usize::from(meta.corrupted);
+                continue;
+            }
+            let src = slot * width + offset * d;
+            if self.large {
+                prefetch_next_row(&self.rows[src..(slot + 1) * width], d);
+            }
+            let dst = g.used * stride;
+            if D > 0 {
+                self.cand[dst..dst + D].copy_from_slice(&self.rows[src..src + D]);
+            } else {
+                self.cand[dst..dst + d].copy_from_slice(&self.rows[src..src + d]);
+            }
+            self.cand_corrupted[g.used] = meta.corrupted;
+            g.used += 1;
         }
         g
     }

@@ -232,12 +232,7 @@ impl PyVecPushT {
 
 impl PyVecPushT {
     fn states<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
-        let rows: Vec<Vec<f64>> = self
-            .envs
-            .envs()
-            .iter()
-            .map(|e| e.state_obs().to_vec())
-            .collect();
+        let rows: Vec<Vec<f64>> = self.envs.observe(|e| e.state_obs().to_vec());
         PyArray2::from_vec2(py, &rows).expect("rows of 5")
     }
 }

@@ -20,6 +20,12 @@ pub enum SimError {
     /// The seed cannot be used with the chosen reset stream.
     #[error(transparent)]
     Rng(#[from] RngError),
+    /// An environment of a `VecEnv` tick that gave no result (its worker thread was lost).
+    #[error("environment {index} gave no result for this tick: its worker thread was lost")]
+    NoResult {
+        /// The environment's index in the batch.
+        index: usize,
+    },
     /// A batch of actions whose length does not match the number of environments.
     #[error("got {actions} actions for {envs} environments")]
     BatchSize {

@@ -1,136 +1,280 @@
 //! `VecEnv`: N independent PushT environments stepped in parallel.
 //!
-//! Every environment owns its physics world and is stepped by exactly one thread, so results
-//! do not depend on the number of threads or on scheduling (a test checks 1 thread against
-//! many). A step splits the environments into one contiguous block per thread (the thread
-//! count is rayon's, so `RAYON_NUM_THREADS` and `ThreadPool::install` set it); the calling
-//! thread takes the first block and scoped threads the others, for steps and resets alike.
+//! Every environment owns its physics world, and a step of one environment is the same
+//! computation whichever thread runs it, so results do not depend on the number of threads
+//! or on scheduling (a test checks 1 thread against several). From [`PARALLEL_MIN_ENVS`]
+//! environments on, `threads - 1` worker threads live as long as the `VecEnv` (the count is
+//! rayon's at construction, so `RAYON_NUM_THREADS` and `ThreadPool::install` set it); at
+//! each tick the calling thread and the workers claim environments one at a time from a
+//! shared counter, so a thread whose environments are in contact (slower physics) does not
+//! hold the others up.
+//!
+//! A tick is 5-20 µs of physics per environment, so waking a thread must cost far less:
+//! starting one (or waking a sleeping pool) costs about as much as a tick. A worker therefore
+//! spins for [`WORKER_SPIN`] after its last tick, waiting for the next with no system call,
+//! and only then parks; a control loop that ticks continuously never pays a wake-up, and an
+//! idle `VecEnv` costs nothing after that window.
 
-/// The fewest environments stepped on several threads; fewer run on the calling thread. A
-/// step is 10-20 us of physics, and starting a thread costs about as much
-/// (`benches/step.rs`, `vec_env_tick` against `plain_loop_tick`).
-pub const PARALLEL_MIN_ENVS: usize = 8;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
 
 use crate::env::{PhysicsConfig, PushT, State, StepInfo};
 use crate::error::SimError;
 use crate::rng::ResetStream;
 
+/// The fewest environments stepped on several threads; fewer run on the calling thread
+/// (`benches/step.rs`, `vec_env_tick` against `plain_loop_tick`).
+pub const PARALLEL_MIN_ENVS: usize = 8;
+
+/// How long an idle worker waits for the next job by spinning before it parks.
+pub const WORKER_SPIN: Duration = Duration::from_micros(200);
+
 /// A batch of PushT environments.
 pub struct VecEnv {
-    envs: Vec<PushT>,
+    shared: Arc<Shared>,
+    workers: Vec<JoinHandle<()>>,
+}
+
+/// One environment with its input and output of the current tick.
+struct Slot {
+    env: PushT,
+    job: Job,
+    done: Done,
+}
+
+/// One environment's input of a tick.
+#[derive(Clone, Copy)]
+enum Job {
+    Idle,
+    Step([f64; 2]),
+    Reset(u64, ResetStream),
+}
+
+/// One environment's result of a tick.
+enum Done {
+    Empty,
+    Step(Result<StepInfo, SimError>),
+    Reset(Result<State, SimError>),
+}
+
+impl Slot {
+    fn run(&mut self) {
+        self.done = match std::mem::replace(&mut self.job, Job::Idle) {
+            Job::Idle => Done::Empty,
+            Job::Step(a) => Done::Step(self.env.step(a)),
+            Job::Reset(seed, stream) => Done::Reset(self.env.reset(seed, stream)),
+        };
+    }
+}
+
+/// What the calling thread and the workers share.
+struct Shared {
+    slots: Vec<Mutex<Slot>>,
+    /// Ticks posted so far; a worker joins in whenever it moves.
+    posted: AtomicU64,
+    /// The next environment to claim in the current tick.
+    next: AtomicUsize,
+    /// Environments finished in the current tick.
+    finished: AtomicUsize,
+    stop: AtomicBool,
+}
+
+impl Shared {
+    /// Slot `i`, also after a panic elsewhere (a poisoned lock holds consistent data here: a
+    /// result replaces the previous one whole).
+    fn slot(&self, i: usize) -> MutexGuard<'_, Slot> {
+        self.slots[i].lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Claims and runs environments until none is left in this tick.
+    fn claim(&self) {
+        loop {
+            let i = self.next.fetch_add(1, Ordering::AcqRel);
+            if i >= self.slots.len() {
+                return;
+            }
+            self.slot(i).run();
+            self.finished.fetch_add(1, Ordering::Release);
+        }
+    }
+}
+
+/// A worker's loop: join each posted tick, spin for the next for [`WORKER_SPIN`], then park.
+fn work(shared: &Shared) {
+    let mut seen = 0u64;
+    let mut idle_since = Instant::now();
+    loop {
+        if shared.stop.load(Ordering::Acquire) {
+            return;
+        }
+        let posted = shared.posted.load(Ordering::Acquire);
+        if posted == seen {
+            if idle_since.elapsed() < WORKER_SPIN {
+                std::hint::spin_loop();
+            } else {
+                std::thread::park();
+            }
+            continue;
+        }
+        seen = posted;
+        shared.claim();
+        idle_since = Instant::now();
+    }
 }
 
 impl VecEnv {
-    /// `n` environments with the same physics configuration.
+    /// `n` environments with the same physics configuration; from [`PARALLEL_MIN_ENVS`] on,
+    /// stepped by as many threads as rayon's current count.
     pub fn new(n: usize, config: PhysicsConfig) -> Self {
-        VecEnv {
-            envs: (0..n).map(|_| PushT::new(config)).collect(),
-        }
+        let slots = (0..n)
+            .map(|_| {
+                Mutex::new(Slot {
+                    env: PushT::new(config),
+                    job: Job::Idle,
+                    done: Done::Empty,
+                })
+            })
+            .collect();
+        let shared = Arc::new(Shared {
+            slots,
+            posted: AtomicU64::new(0),
+            next: AtomicUsize::new(0),
+            finished: AtomicUsize::new(0),
+            stop: AtomicBool::new(false),
+        });
+        let threads = rayon::current_num_threads();
+        let workers = if n < PARALLEL_MIN_ENVS || threads < 2 {
+            Vec::new()
+        } else {
+            (1..threads)
+                .map(|_| {
+                    let theirs = Arc::clone(&shared);
+                    std::thread::spawn(move || work(&theirs))
+                })
+                .collect()
+        };
+        VecEnv { shared, workers }
     }
 
     /// Number of environments.
     pub fn len(&self) -> usize {
-        self.envs.len()
+        self.shared.slots.len()
     }
 
     /// True when the batch is empty.
     pub fn is_empty(&self) -> bool {
-        self.envs.is_empty()
+        self.shared.slots.is_empty()
     }
 
-    /// The environments, for reading observations.
-    pub fn envs(&self) -> &[PushT] {
-        &self.envs
+    /// Threads that step the environments (the calling one included).
+    pub fn threads(&self) -> usize {
+        1 + self.workers.len()
     }
 
-    /// Mutable access to the environments.
-    pub fn envs_mut(&mut self) -> &mut [PushT] {
-        &mut self.envs
+    /// `f(environment)` for every environment, in order (to read observations).
+    pub fn observe<R>(&self, mut f: impl FnMut(&PushT) -> R) -> Vec<R> {
+        (0..self.len())
+            .map(|i| f(&self.shared.slot(i).env))
+            .collect()
+    }
+
+    /// `f(index, environment)` for every environment, in order, with mutable access.
+    pub fn for_each_mut(&mut self, mut f: impl FnMut(usize, &mut PushT)) {
+        for i in 0..self.len() {
+            f(i, &mut self.shared.slot(i).env);
+        }
     }
 
     /// Reset environment `i` with seed `seeds[i]`.
     pub fn reset(&mut self, seeds: &[u64], stream: ResetStream) -> Result<Vec<State>, SimError> {
-        if seeds.len() != self.envs.len() {
-            return Err(SimError::BatchSize {
-                actions: seeds.len(),
-                envs: self.envs.len(),
-            });
-        }
-        self.map_envs(seeds, |e, &s| e.reset(s, stream))
+        self.check_len(seeds.len())?;
+        let done = self.tick(|i| Job::Reset(seeds[i], stream));
+        done.into_iter()
+            .enumerate()
+            .map(|(index, d)| match d {
+                Done::Reset(r) => r,
+                _ => Err(SimError::NoResult { index }),
+            })
+            .collect()
     }
 
     /// Step environment `i` towards `actions[i]`. On error no environment is stepped.
     pub fn step(&mut self, actions: &[[f64; 2]]) -> Result<Vec<StepInfo>, SimError> {
-        if actions.len() != self.envs.len() {
-            return Err(SimError::BatchSize {
-                actions: actions.len(),
-                envs: self.envs.len(),
-            });
-        }
+        self.check_len(actions.len())?;
         if let Some(a) = actions.iter().find(|a| !a.iter().all(|v| v.is_finite())) {
             return Err(SimError::NonFiniteAction { action: *a });
         }
-        self.map_envs(actions, |e, &a| e.step(a))
+        let done = self.tick(|i| Job::Step(actions[i]));
+        done.into_iter()
+            .enumerate()
+            .map(|(index, d)| match d {
+                Done::Step(r) => r,
+                _ => Err(SimError::NoResult { index }),
+            })
+            .collect()
     }
 
-    /// `f(env i, &inputs[i])` for every environment, in order: on the calling thread below
-    /// [`PARALLEL_MIN_ENVS`], else one contiguous block per thread, the calling thread taking
-    /// the first and scoped threads the others (a tick wakes `threads - 1` threads and
-    /// nothing waits on a pool's sleeping workers).
-    fn map_envs<A: Sync, R: Send>(
-        &mut self,
-        inputs: &[A],
-        f: impl Fn(&mut PushT, &A) -> Result<R, SimError> + Sync,
-    ) -> Result<Vec<R>, SimError> {
-        if !self.parallel() {
-            return self
-                .envs
-                .iter_mut()
-                .zip(inputs)
-                .map(|(e, a)| f(e, a))
-                .collect();
+    /// Posts `job(i)` to every environment, claims environments beside the workers until
+    /// all are done, and takes the results in order.
+    fn tick(&mut self, job: impl Fn(usize) -> Job) -> Vec<Done> {
+        let shared = Arc::clone(&self.shared);
+        let s = &*shared;
+        for i in 0..s.slots.len() {
+            s.slot(i).job = job(i);
         }
-        let chunk = self.chunk();
-        let f = &f;
-        let mut out: Vec<Result<R, SimError>> = Vec::with_capacity(self.envs.len());
-        std::thread::scope(|scope| {
-            let mut blocks = self.envs.chunks_mut(chunk).zip(inputs.chunks(chunk));
-            let first = blocks.next();
-            let handles: Vec<_> = blocks
-                .map(|(envs, ins)| {
-                    scope.spawn(move || {
-                        envs.iter_mut()
-                            .zip(ins)
-                            .map(|(e, a)| f(e, a))
-                            .collect::<Vec<_>>()
-                    })
-                })
-                .collect();
-            if let Some((envs, ins)) = first {
-                out.extend(envs.iter_mut().zip(ins).map(|(e, a)| f(e, a)));
+        // `finished` before `next`, and `next` released: a worker that claims index 0 of this
+        // tick sees the zeroed count, so its completion is not lost.
+        s.finished.store(0, Ordering::Relaxed);
+        s.next.store(0, Ordering::Release);
+        s.posted.fetch_add(1, Ordering::Release);
+        for w in &self.workers {
+            w.thread().unpark(); // no system call unless the worker is parked
+        }
+        s.claim();
+        let start = Instant::now();
+        while s.finished.load(Ordering::Acquire) < s.slots.len() {
+            if start.elapsed() < WORKER_SPIN {
+                std::hint::spin_loop();
+            } else {
+                self.resume_dead_worker();
+                std::thread::yield_now();
             }
-            for h in handles {
-                // A worker only panics on a bug; its panic continues here.
-                match h.join() {
-                    Ok(v) => out.extend(v),
-                    Err(p) => std::panic::resume_unwind(p),
-                }
-            }
-        });
-        out.into_iter().collect()
+        }
+        (0..s.slots.len())
+            .map(|i| std::mem::replace(&mut s.slot(i).done, Done::Empty))
+            .collect()
     }
 
-    /// Whether a tick is worth more threads: not below [`PARALLEL_MIN_ENVS`] environments,
-    /// nor with one thread.
-    fn parallel(&self) -> bool {
-        self.envs.len() >= PARALLEL_MIN_ENVS && rayon::current_num_threads() > 1
+    /// A worker that died (a bug in the physics, which panicked mid-step) resumes its panic
+    /// here, rather than leaving the tick waiting for its environment forever.
+    fn resume_dead_worker(&mut self) {
+        if let Some(k) = self.workers.iter().position(JoinHandle::is_finished)
+            && let Err(p) = self.workers.swap_remove(k).join()
+        {
+            std::panic::resume_unwind(p);
+        }
     }
 
-    /// Environments per task: one contiguous block per thread.
-    fn chunk(&self) -> usize {
-        self.envs
-            .len()
-            .div_ceil(rayon::current_num_threads())
-            .max(1)
+    fn check_len(&self, given: usize) -> Result<(), SimError> {
+        if given == self.len() {
+            Ok(())
+        } else {
+            Err(SimError::BatchSize {
+                actions: given,
+                envs: self.len(),
+            })
+        }
+    }
+}
+
+impl Drop for VecEnv {
+    fn drop(&mut self) {
+        self.shared.stop.store(true, Ordering::Release);
+        for w in self.workers.drain(..) {
+            w.thread().unpark();
+            let _ = w.join(); // a worker's panic was already resumed by the tick that saw it
+        }
     }
 }

@@ -172,8 +172,7 @@ fn vec_env_is_independent_of_thread_count() {
             v.reset(&seeds, ResetStream::Legacy).expect("reset");
             let mut out = Vec::new();
             for t in 0..25 {
-                let actions: Vec<[f64; 2]> =
-                    v.envs().iter().map(|e| pushing_actions(e, t)).collect();
+                let actions: Vec<[f64; 2]> = v.observe(|e| pushing_actions(e, t));
                 out.push(v.step(&actions).expect("step"));
             }
             out
@@ -181,13 +180,14 @@ fn vec_env_is_independent_of_thread_count() {
     };
     let one = run(1);
     assert_eq!(one, run(3));
+    assert_eq!(one, run(2));
     // A small batch runs on the calling thread and gives the same steps.
     let small = {
         let mut v = VecEnv::new(4, PhysicsConfig::default());
         v.reset(&seeds[..4], ResetStream::Legacy).expect("reset");
         let mut out = Vec::new();
         for t in 0..25 {
-            let actions: Vec<[f64; 2]> = v.envs().iter().map(|e| pushing_actions(e, t)).collect();
+            let actions: Vec<[f64; 2]> = v.observe(|e| pushing_actions(e, t));
             out.push(v.step(&actions).expect("step"));
         }
         out
@@ -201,6 +201,53 @@ fn vec_env_is_independent_of_thread_count() {
         Err(SimError::BatchSize {
             actions: 1,
             envs: 2
+        })
+    ));
+}
+
+/// Worker blocks keep the environments' order in resets, observations and mutable access,
+/// and a tick after the workers have parked (idle past `WORKER_SPIN`) wakes them and gives
+/// the steps a plain loop gives.
+#[test]
+fn vec_env_workers_keep_order_and_wake_from_parking() {
+    let seeds: Vec<u64> = (200..212).collect();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(3)
+        .build()
+        .expect("pool");
+    let mut v = pool.install(|| VecEnv::new(seeds.len(), PhysicsConfig::default()));
+    assert_eq!(v.threads(), 3);
+    assert_eq!(VecEnv::new(4, PhysicsConfig::default()).threads(), 1);
+    let mut plain: Vec<PushT> = seeds.iter().map(|_| PushT::default()).collect();
+    let states = v.reset(&seeds, ResetStream::Pcg64).expect("reset");
+    for (e, (&seed, s)) in plain.iter_mut().zip(seeds.iter().zip(&states)) {
+        assert_eq!(&e.reset(seed, ResetStream::Pcg64).expect("reset"), s);
+    }
+    assert_eq!(
+        v.observe(|e| e.state_obs()),
+        plain.iter().map(PushT::state_obs).collect::<Vec<_>>()
+    );
+    let mut order = Vec::new();
+    v.for_each_mut(|i, _| order.push(i));
+    assert_eq!(order, (0..seeds.len()).collect::<Vec<_>>());
+    for t in 0..6 {
+        if t == 3 {
+            std::thread::sleep(mte_sim::vec_env::WORKER_SPIN * 20);
+        }
+        let actions: Vec<[f64; 2]> = v.observe(|e| pushing_actions(e, t));
+        let got = v.step(&actions).expect("step");
+        let want: Vec<_> = plain
+            .iter_mut()
+            .zip(&actions)
+            .map(|(e, &a)| e.step(a).expect("step"))
+            .collect();
+        assert_eq!(got, want, "tick {t}");
+    }
+    assert!(matches!(
+        v.reset(&seeds[1..], ResetStream::Pcg64),
+        Err(SimError::BatchSize {
+            actions: 11,
+            envs: 12
         })
     ));
 }

@@ -544,6 +544,10 @@ fn patch_finetune_and_probe_run_end_to_end() {
             "2",
             "--batch-size",
             "4",
+            "--clean-features",
+            "1",
+            "--checkpoint-every",
+            "1",
         ])
         .args(["--lr", "1e-3", "--policy"])
         .arg(p("policy"))
@@ -557,6 +561,27 @@ fn patch_finetune_and_probe_run_end_to_end() {
         .success()
         .stdout(predicate::str::contains("for 2 steps"));
     assert!(p("tuned/model.safetensors").exists() && p("tuned/finetune.json").exists());
+    // A checkpoint after step 1, none after the last (that is the output itself).
+    assert!(p("tuned/step-1/model.safetensors").exists() && !p("tuned/step-2").exists());
+    let ft: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(p("tuned/finetune.json")).unwrap()).unwrap();
+    assert_eq!(ft["config"]["clean_features"], serde_json::json!(1.0));
+    assert!(
+        ft["report"]["last_clean_drift"].as_f64().unwrap() >= 0.0,
+        "{ft}"
+    );
+    mte()
+        .args(["defend", "finetune", "--checkpoint-every", "0", "--policy"])
+        .arg(p("policy"))
+        .arg("--data")
+        .arg(p("demos"))
+        .arg("--patch")
+        .arg(p("patch"))
+        .arg("--out")
+        .arg(p("tuned0"))
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("--checkpoint-every 0"));
     let out = mte()
         .args([
             "--format",

@@ -2280,6 +2280,11 @@ mod tests {
         assert_eq!(xs, [16.0, 24.0]);
         let y24 = row(&r, "occ-24").recovered.coverage.unwrap();
         assert_eq!(p.spec.series[0].points[1].y, y24);
+        // Error bars: the jackknife over the seeds of the clean cell and both arms.
+        let (_, se) =
+            mte_stats::recovered_fraction_jackknife(&CLEAN_EWM, &Q1_EWM, &Q1_MEDIAN).unwrap();
+        assert_eq!(p.spec.series[0].points[1].err, Some(se));
+        assert!(se > 0.0 && p.spec.series[0].points[0].err.is_some());
         // Two occluder sizes: two coverage-against-q plots (one point each plus clean).
         assert_eq!(
             r.plots

@@ -33,6 +33,73 @@ pub fn recovered_fraction(clean: f64, undefended: f64, defended: f64) -> Result<
     Ok((defended - undefended) / (clean - undefended))
 }
 
+/// The recovered fraction of paired samples with its jackknife standard error: `clean[i]`,
+/// `undefended[i]` and `defended[i]` are one seed's values (the same reset seed in the clean
+/// cell, the corrupted baseline and the corrupted defended arm). The estimate is
+/// [`recovered_fraction`] of the three means; the standard error is the delete-one
+/// jackknife's, `sqrt((n − 1) / n · Σ (R₋ᵢ − R̄)²)` over the `n` fractions that leave one seed
+/// out. It needs no random draws, and it is the paired standard error of the mean difference
+/// divided by the denominator when `clean` and `undefended` are constant (the delta method's
+/// answer for a ratio of means).
+///
+/// ```
+/// let (f, se) = mte_stats::recovered_fraction_jackknife(
+///     &[0.8, 0.8, 0.8], &[0.2, 0.2, 0.2], &[0.5, 0.6, 0.7])?;
+/// assert!((f - 2.0 / 3.0).abs() < 1e-12);
+/// // sd(defended) / sqrt(3) / (0.8 - 0.2)
+/// assert!((se - 0.1 / 3f64.sqrt() / 0.6).abs() < 1e-12);
+/// # Ok::<(), mte_stats::StatsError>(())
+/// ```
+///
+/// # Errors
+///
+/// [`StatsError::LengthMismatch`] when the three differ in length,
+/// [`StatsError::TooFewSamples`] below 2 seeds, [`StatsError::NonFinite`] naming the
+/// argument, [`StatsError::UndefinedRecovery`] when the full-sample or a leave-one-out
+/// denominator is 0.
+pub fn recovered_fraction_jackknife(
+    clean: &[f64],
+    undefended: &[f64],
+    defended: &[f64],
+) -> Result<(f64, f64)> {
+    let n = clean.len();
+    for other in [undefended.len(), defended.len()] {
+        if other != n {
+            return Err(StatsError::LengthMismatch {
+                left: n,
+                right: other,
+            });
+        }
+    }
+    if n < 2 {
+        return Err(StatsError::TooFewSamples {
+            argument: "clean",
+            needed: 2,
+            got: n,
+        });
+    }
+    check_finite("clean", clean)?;
+    check_finite("undefended", undefended)?;
+    check_finite("defended", defended)?;
+    let sum = |v: &[f64]| v.iter().sum::<f64>();
+    let (sc, su, sd) = (sum(clean), sum(undefended), sum(defended));
+    let nf = n as f64;
+    let full = recovered_fraction(sc / nf, su / nf, sd / nf)?;
+    let loo = (0..n)
+        .map(|i| {
+            let m = nf - 1.0;
+            recovered_fraction(
+                (sc - clean[i]) / m,
+                (su - undefended[i]) / m,
+                (sd - defended[i]) / m,
+            )
+        })
+        .collect::<Result<Vec<f64>>>()?;
+    let mean = loo.iter().sum::<f64>() / nf;
+    let ss: f64 = loo.iter().map(|r| (r - mean).powi(2)).sum();
+    Ok((full, ((nf - 1.0) / nf * ss).sqrt()))
+}
+
 /// Both samples checked (non-empty, finite) and pooled as `(score, is_positive)`, lowest
 /// score first.
 fn sorted_pool(positive_scores: &[f64], negative_scores: &[f64]) -> Result<Vec<(f64, bool)>> {
@@ -153,5 +220,50 @@ mod tests {
         assert!(roc_curve(&[], &neg).is_err());
         assert!(roc_curve(&pos, &[f64::NAN]).is_err());
         Ok(())
+    }
+
+    /// The jackknife against its closed form for a mean (constant clean and undefended), a
+    /// naive leave-one-out recomputation on uneven data, and its typed errors.
+    #[test]
+    fn jackknife_recovered_fraction() {
+        let d = [0.31, 0.52, 0.48, 0.90, 0.12, 0.66];
+        let (f, se) = recovered_fraction_jackknife(&[0.7; 6], &[0.1; 6], &d).unwrap();
+        let m = d.iter().sum::<f64>() / 6.0;
+        let sd = (d.iter().map(|x| (x - m).powi(2)).sum::<f64>() / 5.0).sqrt();
+        assert!((f - (m - 0.1) / 0.6).abs() < 1e-12);
+        assert!((se - sd / 6f64.sqrt() / 0.6).abs() < 1e-12, "{se}");
+        let c = [0.9, 0.7, 0.8, 0.6, 0.95];
+        let u = [0.1, 0.3, 0.2, 0.25, 0.05];
+        let (f, se) = recovered_fraction_jackknife(&c, &u, &d[..5]).unwrap();
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        assert!((f - (mean(&d[..5]) - mean(&u)) / (mean(&c) - mean(&u))).abs() < 1e-12);
+        let loo: Vec<f64> = (0..5)
+            .map(|i| {
+                let drop = |v: &[f64]| {
+                    v.iter()
+                        .enumerate()
+                        .filter(|&(j, _)| j != i)
+                        .map(|(_, x)| *x)
+                        .collect::<Vec<_>>()
+                };
+                let (c, u, dd) = (drop(&c), drop(&u), drop(&d[..5]));
+                (mean(&dd) - mean(&u)) / (mean(&c) - mean(&u))
+            })
+            .collect();
+        let lm = mean(&loo);
+        let want = (0.8 * loo.iter().map(|r| (r - lm).powi(2)).sum::<f64>()).sqrt();
+        assert!((se - want).abs() < 1e-12, "{se} vs {want}");
+        assert!(matches!(
+            recovered_fraction_jackknife(&[0.5], &[0.1], &[0.3]),
+            Err(StatsError::TooFewSamples { .. })
+        ));
+        assert!(matches!(
+            recovered_fraction_jackknife(&[0.5, 0.5], &[0.1], &[0.3, 0.3]),
+            Err(StatsError::LengthMismatch { .. })
+        ));
+        assert!(matches!(
+            recovered_fraction_jackknife(&[0.2, 0.2], &[0.2, 0.2], &[0.3, 0.3]),
+            Err(StatsError::UndefinedRecovery { .. })
+        ));
     }
 }

@@ -65,7 +65,7 @@ pub use binomial::{
     MAX_TRIALS, binom_cdf, binom_ln_cdf, binom_ln_pmf, binom_ln_sf, binom_pmf, binom_sf,
     binom_test_two_sided, binom_test_two_sided_ln,
 };
-pub use effect::{auroc, recovered_fraction, roc_curve};
+pub use effect::{auroc, recovered_fraction, recovered_fraction_jackknife, roc_curve};
 pub use error::{Result, StatsError};
 pub use multiple::holm;
 pub use normal::{norm_cdf, norm_pdf, norm_ppf, norm_sf};

@@ -192,8 +192,16 @@ fn recovered_plots(
                     } else {
                         c.spec.q() as f64
                     };
+                    // Its paired standard error: the jackknife over the seeds that ran the
+                    // clean cell, the corrupted baseline and the corrupted arm.
+                    let err = clean_of(cells, ci).and_then(|cj| {
+                        let (cl, b, o) = seed_triples(&cells[cj], c, baseline, arm);
+                        mte_stats::recovered_fraction_jackknife(&cl, &b, &o)
+                            .ok()
+                            .map(|(_, se)| se)
+                    });
                     if let Some(y) = f.filter(|y| y.is_finite()) {
-                        pts.push(Point { x, y, err: None });
+                        pts.push(Point { x, y, err });
                     }
                 }
                 pts.sort_by(|a, b| a.x.total_cmp(&b.x));
@@ -224,7 +232,7 @@ fn recovered_plots(
             } else {
                 "q (corrupted queries per period)".into()
             },
-            y_label: "recovered fraction".into(),
+            y_label: "recovered fraction (± paired jackknife SE)".into(),
             integer_x: !by_budget,
             y_include: (0.0, 1.0),
             y_refs: vec![0.0, 1.0],
@@ -232,6 +240,32 @@ fn recovered_plots(
         });
     }
     Ok(specs)
+}
+
+/// Max coverage per seed, on the seeds all three ran: the baseline arm on the clean cell,
+/// the baseline on `cell`, and `arm` on `cell`.
+fn seed_triples(
+    clean: &CellData<'_>,
+    cell: &CellData<'_>,
+    baseline: &str,
+    arm: &str,
+) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let by_seed = |eps: &[&EpisodeRecord]| -> HashMap<u64, f64> {
+        eps.iter().map(|r| (r.seed, r.max_coverage)).collect()
+    };
+    let (cl, other) = (
+        by_seed(clean.episodes(baseline)),
+        by_seed(cell.episodes(arm)),
+    );
+    let mut out = (Vec::new(), Vec::new(), Vec::new());
+    for b in cell.episodes(baseline) {
+        if let (Some(&c), Some(&o)) = (cl.get(&b.seed), other.get(&b.seed)) {
+            out.0.push(c);
+            out.1.push(b.max_coverage);
+            out.2.push(o);
+        }
+    }
+    out
 }
 
 /// The schedule part of a corruption's text form (`burst-q2`).

@@ -535,28 +535,30 @@ fn patch_finetune_and_probe_run_end_to_end() {
         (&grey["origin"], &grey["epochs"]),
         (&meta["origin"], &serde_json::json!(0))
     );
-    mte()
+    // `defend finetune` of the tiny policy against the patch, writing to `out`.
+    let finetune = |out: &str| {
+        let mut c = mte();
+        c.args(["defend", "finetune", "--policy"])
+            .arg(p("policy"))
+            .arg("--data")
+            .arg(p("demos"))
+            .arg("--patch")
+            .arg(p("patch"))
+            .arg("--out")
+            .arg(p(out));
+        c
+    };
+    finetune("tuned")
         .args([
             "--quiet",
-            "defend",
-            "finetune",
             "--steps",
             "2",
             "--batch-size",
             "4",
-            "--clean-features",
-            "1",
-            "--checkpoint-every",
-            "1",
+            "--lr",
+            "1e-3",
         ])
-        .args(["--lr", "1e-3", "--policy"])
-        .arg(p("policy"))
-        .arg("--data")
-        .arg(p("demos"))
-        .arg("--patch")
-        .arg(p("patch"))
-        .arg("--out")
-        .arg(p("tuned"))
+        .args(["--clean-features", "1", "--checkpoint-every", "1"])
         .assert()
         .success()
         .stdout(predicate::str::contains("for 2 steps"));
@@ -570,15 +572,8 @@ fn patch_finetune_and_probe_run_end_to_end() {
         ft["report"]["last_clean_drift"].as_f64().unwrap() >= 0.0,
         "{ft}"
     );
-    mte()
-        .args(["defend", "finetune", "--checkpoint-every", "0", "--policy"])
-        .arg(p("policy"))
-        .arg("--data")
-        .arg(p("demos"))
-        .arg("--patch")
-        .arg(p("patch"))
-        .arg("--out")
-        .arg(p("tuned0"))
+    finetune("tuned0")
+        .args(["--checkpoint-every", "0"])
         .assert()
         .code(2)
         .stderr(predicate::str::contains("--checkpoint-every 0"));

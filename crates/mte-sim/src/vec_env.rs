@@ -191,13 +191,10 @@ impl VecEnv {
     pub fn reset(&mut self, seeds: &[u64], stream: ResetStream) -> Result<Vec<State>, SimError> {
         self.check_len(seeds.len())?;
         let done = self.tick(|i| Job::Reset(seeds[i], stream));
-        done.into_iter()
-            .enumerate()
-            .map(|(index, d)| match d {
-                Done::Reset(r) => r,
-                _ => Err(SimError::NoResult { index }),
-            })
-            .collect()
+        results(done, |d| match d {
+            Done::Reset(r) => Some(r),
+            _ => None,
+        })
     }
 
     /// Step environment `i` towards `actions[i]`. On error no environment is stepped.
@@ -207,13 +204,10 @@ impl VecEnv {
             return Err(SimError::NonFiniteAction { action: *a });
         }
         let done = self.tick(|i| Job::Step(actions[i]));
-        done.into_iter()
-            .enumerate()
-            .map(|(index, d)| match d {
-                Done::Step(r) => r,
-                _ => Err(SimError::NoResult { index }),
-            })
-            .collect()
+        results(done, |d| match d {
+            Done::Step(r) => Some(r),
+            _ => None,
+        })
     }
 
     /// Posts `job(i)` to every environment, claims environments beside the workers until
@@ -267,6 +261,18 @@ impl VecEnv {
             })
         }
     }
+}
+
+/// The results of a tick in order, `pick` taking each environment's of the expected kind; an
+/// environment without one is [`SimError::NoResult`].
+fn results<T>(
+    done: Vec<Done>,
+    pick: impl Fn(Done) -> Option<Result<T, SimError>>,
+) -> Result<Vec<T>, SimError> {
+    done.into_iter()
+        .enumerate()
+        .map(|(index, d)| pick(d).unwrap_or(Err(SimError::NoResult { index })))
+        .collect()
 }
 
 impl Drop for VecEnv {

@@ -171,37 +171,13 @@ fn recovered_plots(
                     {
                         continue;
                     }
-                    let what = format!("cell `{}`, `{arm}` vs `{baseline}`", c.spec.id);
-                    let cmp =
-                        compare(c.episodes(baseline), c.episodes(arm), arm, &what, c.mcnemar)?;
-                    // Only where the denominator is significantly above zero.
-                    let clean_mean = row_of(ci)
-                        .filter(|r| {
-                            r.recovered
-                                .denominator
-                                .is_some_and(|d| d.coverage_meaningful())
-                        })
-                        .and_then(|r| r.clean.as_ref())
-                        .map(|r| r.coverage.mean);
-                    let f = match (clean_mean, cmp.baseline, cmp.other) {
-                        (Some(cl), Some(b), Some(o)) => recovered_fraction(cl, b.mean, o.mean).ok(),
-                        _ => None,
-                    };
                     let x = if by_budget {
                         c.spec.budget().unwrap_or(0.0)
                     } else {
                         c.spec.q() as f64
                     };
-                    // Its paired standard error: the jackknife over the seeds that ran the
-                    // clean cell, the corrupted baseline and the corrupted arm.
-                    let err = clean_of(cells, ci).and_then(|cj| {
-                        let (cl, b, o) = seed_triples(&cells[cj], c, baseline, arm);
-                        mte_stats::recovered_fraction_jackknife(&cl, &b, &o)
-                            .ok()
-                            .map(|(_, se)| se)
-                    });
-                    if let Some(y) = f.filter(|y| y.is_finite()) {
-                        pts.push(Point { x, y, err });
+                    if let Some(p) = recovered_point(cells, ci, row_of(ci), baseline, arm, x)? {
+                        pts.push(p);
                     }
                 }
                 pts.sort_by(|a, b| a.x.total_cmp(&b.x));
@@ -240,6 +216,44 @@ fn recovered_plots(
         });
     }
     Ok(specs)
+}
+
+/// The recovered fraction of `arm` against `baseline` on cell `ci` at `x`, where the main
+/// table's denominator is significantly above zero, with its paired standard error: the
+/// jackknife over the seeds that ran the clean cell, the corrupted baseline and the arm.
+fn recovered_point(
+    cells: &[CellData<'_>],
+    ci: usize,
+    row: Option<&MainRow>,
+    baseline: &str,
+    arm: &str,
+    x: f64,
+) -> Result<Option<Point>, ReportError> {
+    let c = &cells[ci];
+    let what = format!("cell `{}`, `{arm}` vs `{baseline}`", c.spec.id);
+    let cmp = compare(c.episodes(baseline), c.episodes(arm), arm, &what, c.mcnemar)?;
+    let clean_mean = row
+        .filter(|r| {
+            r.recovered
+                .denominator
+                .is_some_and(|d| d.coverage_meaningful())
+        })
+        .and_then(|r| r.clean.as_ref())
+        .map(|r| r.coverage.mean);
+    let y = match (clean_mean, cmp.baseline, cmp.other) {
+        (Some(cl), Some(b), Some(o)) => recovered_fraction(cl, b.mean, o.mean).ok(),
+        _ => None,
+    };
+    let Some(y) = y.filter(|y| y.is_finite()) else {
+        return Ok(None);
+    };
+    let err = clean_of(cells, ci).and_then(|cj| {
+        let (cl, b, o) = seed_triples(&cells[cj], c, baseline, arm);
+        mte_stats::recovered_fraction_jackknife(&cl, &b, &o)
+            .ok()
+            .map(|(_, se)| se)
+    });
+    Ok(Some(Point { x, y, err }))
 }
 
 /// Max coverage per seed, on the seeds all three ran: the baseline arm on the clean cell,

@@ -359,7 +359,7 @@ pub fn train_patch(
             let g = grads
                 .get(var.as_tensor())
                 .ok_or_else(|| config_err("patch", "no gradient", "a differentiable encoder"))?;
-            total += f64::from(loss.to_dtype(DType::F32)?.to_scalar::<f32>()?);
+            total += scalar(&loss)?;
             patch = ascend(&patch, g, cfg.step, cfg.ascent)?;
         }
         let mean = total / cfg.batches_per_epoch as f64;
@@ -562,10 +562,8 @@ pub fn finetune_encoder(
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let dev = policy.device();
     // The original encoder is a constant copy of the whole policy as it is now (only its
-    // encoder runs); the current one's clean features are needed by the `Current` anchor and
-    // by the clean-feature term.
-    let keep_clean = cfg.clean_features > 0.0;
-    let original = (cfg.anchor == Anchor::Original || keep_clean)
+    // encoder runs), needed by the `Original` anchor and by the clean-feature term.
+    let original = (cfg.anchor == Anchor::Original || cfg.clean_features > 0.0)
         .then(|| frozen_copy(policy, varmap))
         .transpose()?;
     let mut patch = Tensor::from_vec(texture.to_vec(), (3, side, side), dev)?;
@@ -590,52 +588,75 @@ pub fn finetune_encoder(
         let f_att = policy.image_features(&attacked)?;
         let cond = policy.global_cond_from_features(&b.obs, Some(&f_att))?;
         let task = policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)?;
-        let f_orig = original
-            .as_ref()
-            .map(|o| o.image_features(clean).map(|f| f.detach()))
-            .transpose()?;
-        let f_now = (keep_clean || cfg.anchor == Anchor::Current)
-            .then(|| policy.image_features(clean))
-            .transpose()?;
-        let anchor = match cfg.anchor {
-            Anchor::Original => f_orig.clone(),
-            Anchor::Current => f_now.as_ref().map(Tensor::detach),
-        }
-        .ok_or_else(|| config_err("anchor", cfg.anchor, "a clean embedding"))?;
+        let (anchor, clean_drift) = clean_terms(policy, original.as_ref(), clean, cfg)?;
         let consistency = (f_att - anchor)?.sqr()?.sum(D::Minus1)?.mean_all()?;
         let mut total = (task + (&consistency * cfg.consistency)?)?;
-        if let (true, Some(now), Some(orig)) = (keep_clean, &f_now, &f_orig) {
-            let d = (now - orig)?.sqr()?.sum(D::Minus1)?.mean_all()?;
+        if let Some(d) = clean_drift {
             total = (total + (&d * cfg.clean_features)?)?;
-            drift.push(f64::from(d.to_dtype(DType::F32)?.to_scalar::<f32>()?));
+            drift.push(scalar(&d)?);
         }
         let grads = total.backward()?;
         // Only the encoder's variables are in the optimiser: the denoising head is frozen.
         opt.step(&grads)?;
-        let l = f64::from(total.to_dtype(DType::F32)?.to_scalar::<f32>()?);
+        let l = scalar(&total)?;
         losses.push(l);
-        cons.push(f64::from(
-            consistency.to_dtype(DType::F32)?.to_scalar::<f32>()?,
-        ));
+        cons.push(scalar(&consistency)?);
         after_step(step + 1, l)?;
     }
-    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
-    let k = losses.len().min(100);
-    let ends = |v: &[f64]| {
-        let k = v.len().min(100);
-        (k > 0).then(|| (mean(&v[..k]), mean(&v[v.len() - k..])))
-    };
+    let ((first_loss, last_loss), (first_consistency, last_consistency)) =
+        (first_last(&losses), first_last(&cons));
+    let drift = (!drift.is_empty()).then(|| first_last(&drift));
     Ok(FinetuneReport {
         steps: cfg.steps,
         encoder_tensors,
-        first_loss: mean(&losses[..k]),
-        last_loss: mean(&losses[losses.len() - k..]),
-        first_consistency: mean(&cons[..k]),
-        last_consistency: mean(&cons[cons.len() - k..]),
-        first_clean_drift: ends(&drift).map(|e| e.0),
-        last_clean_drift: ends(&drift).map(|e| e.1),
+        first_loss,
+        last_loss,
+        first_consistency,
+        last_consistency,
+        first_clean_drift: drift.map(|e| e.0),
+        last_clean_drift: drift.map(|e| e.1),
         texture: patch.flatten_all()?.to_vec1::<f32>()?,
     })
+}
+
+/// The clean embedding the consistency term ties the patched one to (detached), and the
+/// clean-feature drift `mean ‖f_θ(x) − f_θ0(x)‖²` when that term is on: `original` is the
+/// frozen copy from before fine-tuning, present when the anchor or the term needs it.
+fn clean_terms(
+    policy: &DiffusionPolicy,
+    original: Option<&DiffusionPolicy>,
+    clean: &Tensor,
+    cfg: &FinetuneConfig,
+) -> Result<(Tensor, Option<Tensor>), PolicyError> {
+    let keep_clean = cfg.clean_features > 0.0;
+    let f_orig = original
+        .map(|o| o.image_features(clean).map(|f| f.detach()))
+        .transpose()?;
+    let f_now = (keep_clean || cfg.anchor == Anchor::Current)
+        .then(|| policy.image_features(clean))
+        .transpose()?;
+    let anchor = match cfg.anchor {
+        Anchor::Original => f_orig.clone(),
+        Anchor::Current => f_now.as_ref().map(Tensor::detach),
+    }
+    .ok_or_else(|| config_err("anchor", cfg.anchor, "a clean embedding"))?;
+    let drift = match (keep_clean, f_now, f_orig) {
+        (true, Some(now), Some(orig)) => Some((now - orig)?.sqr()?.sum(D::Minus1)?.mean_all()?),
+        _ => None,
+    };
+    Ok((anchor, drift))
+}
+
+/// A scalar tensor's value as f64.
+fn scalar(t: &Tensor) -> Result<f64, PolicyError> {
+    Ok(f64::from(t.to_dtype(DType::F32)?.to_scalar::<f32>()?))
+}
+
+/// Means over the first and the last up-to-100 values (0 for none).
+fn first_last(v: &[f64]) -> (f64, f64) {
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let k = v.len().min(100);
+    (mean(&v[..k]), mean(&v[v.len() - k..]))
 }
 
 /// The gradient probe's figures (means over the probed batches).

@@ -14,6 +14,8 @@ use mte_sim::ResetStream;
 use rand::RngCore;
 
 fn main() {
+    // As the `mte` binary does: freed tensor buffers stay in the heap.
+    mte_policy::memory::keep_freed_memory();
     divan::main();
 }
 

@@ -14,6 +14,8 @@ use mte_policy::{DiffusionPolicy, Observation, Stats, StatsMap};
 use rand::SeedableRng;
 
 fn main() {
+    // As the `mte` binary does: freed tensor buffers stay in the heap.
+    mte_policy::memory::keep_freed_memory();
     divan::main();
 }
 

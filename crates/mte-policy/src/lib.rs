@@ -9,12 +9,13 @@
 //!   encoder defence); its modules are re-exported here under their old paths.
 //! - Shared pieces: [`vision`] (the ResNet-18-GN encoder), [`kernels`] (fused CPU kernels with
 //!   backward passes), [`normalize`], [`init`] (seeded initialisation; candle's own CPU
-//!   initialisers use a global RNG).
+//!   initialisers use a global RNG), [`memory`] (an opt-in allocator setting for binaries).
 //!
 //! Conventions: observations and actions unnormalised in the environment's units (PushT:
 //! pixels of the 512 x 512 workspace), images RGB u8 HWC; every random draw comes from an
 //! injected seeded generator.
-#![forbid(unsafe_code)]
+// One exception, in `memory`: two calls to glibc's `mallopt`.
+#![deny(unsafe_code)]
 
 pub mod act;
 pub mod attention;
@@ -22,6 +23,7 @@ pub mod diffusion;
 pub mod error;
 pub mod init;
 pub mod kernels;
+pub mod memory;
 pub mod normalize;
 pub mod overrides;
 pub mod policy;

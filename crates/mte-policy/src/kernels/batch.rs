@@ -21,7 +21,7 @@
 //! [`Products::Fused`].
 
 use candle_core::backend::BackendStorage;
-use candle_core::{CpuStorage, CustomOp2, Device, Layout, Result, Shape, Tensor, WithDType};
+use candle_core::{CpuStorage, CustomOp2, Layout, Result, Shape, Tensor, WithDType};
 
 /// How a batch's shared-weight products are computed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -112,32 +112,54 @@ struct PerSampleProduct {
 }
 
 impl PerSampleProduct {
+    /// Each sample's product, read in place from the two storages: the weight is never
+    /// copied (at the `paper` preset a copy per product moved ~1 GB per U-Net forward and
+    /// cost 3x its arithmetic), and each product gets candle's CPU matmul with exactly the
+    /// layouts a batch of one's `Tensor::matmul` passes it (a contiguous weight, or its
+    /// transposed view), so the bits are those of a batch of one.
     fn forward<T: WithDType>(
         &self,
-        x: &[T],
-        x_dims: &[usize],
-        w: &[T],
-        w_dims: &[usize],
-    ) -> Result<(Vec<T>, Shape)> {
-        let [b, p, q] = *x_dims else {
-            candle_core::bail!("per-sample product: x must be (B, p, q), got {x_dims:?}");
+        x: &CpuStorage,
+        lx: &Layout,
+        w: &CpuStorage,
+        lw: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let [b, p, q] = *lx.dims() else {
+            candle_core::bail!(
+                "per-sample product: x must be (B, p, q), got {:?}",
+                lx.dims()
+            );
         };
-        let w = Tensor::from_slice(w, w_dims, &Device::Cpu)?;
-        let w = if self.transpose { w.t()? } else { w };
+        let (Some((x0, _)), Some((w0, _))) = (lx.contiguous_offsets(), lw.contiguous_offsets())
+        else {
+            candle_core::bail!("per-sample product: operands must be contiguous");
+        };
+        let wl = Layout::contiguous_with_offset(lw.dims(), w0);
+        let wl = if self.transpose {
+            wl.transpose(0, 1)?
+        } else {
+            wl
+        };
+        let [wr, wc] = *wl.dims() else {
+            candle_core::bail!(
+                "per-sample product: w must be a matrix, got {:?}",
+                lw.dims()
+            );
+        };
         let (m, n) = match self.side {
-            Side::Left => (w.dim(0)?, q),
-            Side::Right => (p, w.dim(1)?),
+            Side::Left => (wr, q),
+            Side::Right => (p, wc),
         };
-        let mut out = Vec::with_capacity(b * m * n);
-        for xb in x.chunks(p * q).take(b) {
-            let xb = Tensor::from_slice(xb, (p, q), &Device::Cpu)?;
+        let mut out: Vec<T> = Vec::with_capacity(b * m * n);
+        for i in 0..b {
+            let xl = Layout::contiguous_with_offset((p, q), x0 + i * p * q);
             let y = match self.side {
-                Side::Left => w.matmul(&xb)?,
-                Side::Right => xb.matmul(&w)?,
+                Side::Left => w.matmul(x, (1, m, n, wc), &wl, &xl)?,
+                Side::Right => x.matmul(w, (1, m, n, q), &xl, &wl)?,
             };
-            out.extend(y.flatten_all()?.to_vec1::<T>()?);
+            out.extend_from_slice(y.as_slice::<T>()?);
         }
-        Ok((out, Shape::from((b, m, n))))
+        Ok((T::to_cpu_storage_owned(out), Shape::from((b, m, n))))
     }
 }
 
@@ -153,18 +175,9 @@ impl CustomOp2 for PerSampleProduct {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        use super::contiguous;
         match (s1, s2) {
-            (CpuStorage::F32(x), CpuStorage::F32(w)) => {
-                let (v, s) =
-                    self.forward(contiguous(x, l1)?, l1.dims(), contiguous(w, l2)?, l2.dims())?;
-                Ok((CpuStorage::F32(v), s))
-            }
-            (CpuStorage::F64(x), CpuStorage::F64(w)) => {
-                let (v, s) =
-                    self.forward(contiguous(x, l1)?, l1.dims(), contiguous(w, l2)?, l2.dims())?;
-                Ok((CpuStorage::F64(v), s))
-            }
+            (CpuStorage::F32(_), CpuStorage::F32(_)) => self.forward::<f32>(s1, l1, s2, l2),
+            (CpuStorage::F64(_), CpuStorage::F64(_)) => self.forward::<f64>(s1, l1, s2, l2),
             _ => candle_core::bail!(
                 "per-sample product: unsupported dtypes {:?} x {:?}",
                 s1.dtype(),
@@ -318,6 +331,32 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    #[test]
+    fn views_with_offsets_are_read_in_place_as_candle_multiplies_them() {
+        // The products read both storages in place through their layouts: a weight and a
+        // batch that start inside larger buffers (narrowed views, still contiguous), and a
+        // transposed weight, give exactly candle's own product of each sample, bit for bit.
+        let big_w = rand(&[40, 24], 11).to_dtype(DType::F32).expect("w");
+        let big_x = rand(&[9, 24, 5], 12).to_dtype(DType::F32).expect("x");
+        let w = big_w.narrow(0, 7, 16).expect("w view");
+        let x = big_x.narrow(0, 3, 4).expect("x view");
+        assert!(w.is_contiguous() && x.is_contiguous());
+        assert!(w.layout().start_offset() > 0 && x.layout().start_offset() > 0);
+        let left = rows(&left_shared(&w, &x, Products::PerSample).expect("left"));
+        let xt = x.transpose(1, 2).expect("t").contiguous().expect("c");
+        let right = rows(&right_shared(&xt, &w.t().expect("t"), Products::PerSample).expect("r"));
+        for i in 0..4 {
+            let xi = x.get(i).expect("sample");
+            assert_eq!(
+                rows(&w.matmul(&xi).expect("mm").unsqueeze(0).expect("u"))[0],
+                left[i]
+            );
+            let xti = xt.get(i).expect("sample");
+            let want = xti.matmul(&w.t().expect("t")).expect("mm");
+            assert_eq!(rows(&want.unsqueeze(0).expect("u"))[0], right[i]);
         }
     }
 

@@ -285,21 +285,28 @@ fn bundled() -> std::path::PathBuf {
         .join("../../assets/policies/pusht_keypoints_cpu")
 }
 
-/// The bundled image policy loads from a fresh clone and drives PushT from pixels: a short
+/// Both bundled image policies load from a fresh clone and drive PushT from pixels: a short
 /// episode runs, and its coverage is a valid fraction.
 #[test]
-fn bundled_image_policy_runs_an_episode() {
-    let ckpt = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../assets/policies/pusht_image_cpu");
-    let v = json_stdout(
-        mte()
-            .args(["--format", "json", "eval", "policy", "--episodes", "1"])
-            .args(["--max-steps", "40", "--checkpoint"])
-            .arg(&ckpt),
-    );
-    let c = v["mean_max_coverage"].as_f64().unwrap();
-    assert!((0.0..=1.0).contains(&c), "{v}");
-    assert_eq!(v["episodes"].as_array().map(Vec::len), Some(1), "{v}");
+fn bundled_image_policies_run_an_episode() {
+    for name in ["pusht_image_cpu", "pusht_image_cpu_v2"] {
+        let ckpt = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../assets/policies")
+            .join(name);
+        let v = json_stdout(
+            mte()
+                .args(["--format", "json", "eval", "policy", "--episodes", "1"])
+                .args(["--max-steps", "40", "--checkpoint"])
+                .arg(&ckpt),
+        );
+        let c = v["mean_max_coverage"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&c), "{name}: {v}");
+        assert_eq!(
+            v["episodes"].as_array().map(Vec::len),
+            Some(1),
+            "{name}: {v}"
+        );
+    }
 }
 
 #[test]

@@ -134,17 +134,18 @@ impl PerSampleProduct {
         else {
             candle_core::bail!("per-sample product: operands must be contiguous");
         };
-        let wl = Layout::contiguous_with_offset(lw.dims(), w0);
-        let wl = if self.transpose {
-            wl.transpose(0, 1)?
-        } else {
-            wl
-        };
-        let [wr, wc] = *wl.dims() else {
+        let &[s0, s1] = lw.dims() else {
             candle_core::bail!(
                 "per-sample product: w must be a matrix, got {:?}",
                 lw.dims()
             );
+        };
+        // The stored weight, or its transposed view: `(wr, wc)` is the matrix multiplied.
+        let wl = Layout::contiguous_with_offset((s0, s1), w0);
+        let (wl, wr, wc) = if self.transpose {
+            (wl.transpose(0, 1)?, s1, s0)
+        } else {
+            (wl, s0, s1)
         };
         let (m, n) = match self.side {
             Side::Left => (wr, q),

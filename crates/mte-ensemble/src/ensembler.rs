@@ -160,19 +160,12 @@ fn all_finite(values: &[f32]) -> bool {
 /// L1 data cache.
 const LARGE_RING_BYTES: usize = 16 * 1024;
 
-/// Copies `src` into `dst` (same length) and says whether every value is finite, in one
-/// pass, compiled for AVX-512, AVX2 and the baseline and chosen at run time: at ACT's
-/// `T_p = 100`, `d = 14` a copy followed by a separate baseline check of every inserted
-/// chunk cost more than the rest of the insertion.
+/// [`all_finite`] for a whole chunk, compiled for AVX-512, AVX2 and the baseline and chosen
+/// at run time: at ACT's `T_p = 100`, `d = 14` the baseline's 4-lane check of every inserted
+/// chunk cost more than the copy it guards.
 #[multiversion::multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2", "aarch64+neon"))]
-fn copy_finite(dst: &mut [f32], src: &[f32]) -> bool {
-    const EXP: u32 = 0x7f80_0000;
-    let mut bad = 0u32;
-    for (o, &v) in dst.iter_mut().zip(src) {
-        *o = v;
-        bad |= u32::from(v.to_bits() & EXP == EXP);
-    }
-    bad == 0
+fn chunk_finite(values: &[f32]) -> bool {
+    all_finite(values)
 }
 
 /// Streaming temporal ensembler.
@@ -410,11 +403,10 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         let slot = self.wrap(self.head + self.len);
         let executable = &chunk[self.geometry.first_executable_row() * d..];
         let width = span * d;
-        let dst = &mut self.rows[slot * width..(slot + 1) * width];
+        self.rows[slot * width..(slot + 1) * width].copy_from_slice(executable);
         let finite = if self.large {
-            copy_finite(dst, executable)
+            chunk_finite(executable)
         } else {
-            dst.copy_from_slice(executable);
             all_finite(executable)
         };
         if !finite {
@@ -542,14 +534,13 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         let width = span * d;
         let mut g = Gathered::default();
         // The live chunks are slots head.. (wrapping), in query order; those with a query
-        // time after `tau` come last and are not candidates yet. Evicted chunks are gone,
-        // so at most `span` are candidates: one row of `cand` each.
-        let end = self.head + self.len;
-        let ring = (self.head..end.min(self.capacity)).chain(0..end.saturating_sub(self.capacity));
-        let (rows, slots, row_finite) = (&self.rows, &self.slots, &self.row_finite);
-        let mut dst_rows = self.cand.chunks_exact_mut(stride);
-        for slot in ring {
-            let meta = slots[slot];
+        // time after `tau` come last and are not candidates yet.
+        let mut slot = self.head;
+        for k in 0..self.len {
+            if k > 0 {
+                slot = self.wrap(slot + 1);
+            }
+            let meta = self.slots[slot];
             if meta.t_query > tau {
                 break;
             }
@@ -561,22 +552,19 @@ impl<A: Aggregate> TemporalEnsembler<A> {
             g.newest = meta.t_query;
             g.m += 1;
             g.q += usize::from(meta.corrupted);
-            if !meta.finite && !row_finite[slot * span + offset] {
+            if !meta.finite && !self.row_finite[slot * span + offset] {
                 g.excluded_corrupted += usize::from(meta.corrupted);
                 continue;
             }
             let src = slot * width + offset * d;
             if self.large {
-                prefetch_next_row(&rows[src..(slot + 1) * width], d);
+                prefetch_next_row(&self.rows[src..(slot + 1) * width], d);
             }
-            let Some(dst) = dst_rows.next() else {
-                debug_assert!(false, "more candidates than the span");
-                break;
-            };
+            let dst = g.used * stride;
             if D > 0 {
-                dst[..D].copy_from_slice(&rows[src..src + D]);
+                self.cand[dst..dst + D].copy_from_slice(&self.rows[src..src + D]);
             } else {
-                dst[..d].copy_from_slice(&rows[src..src + d]);
+                self.cand[dst..dst + d].copy_from_slice(&self.rows[src..src + d]);
             }
             self.cand_corrupted[g.used] = meta.corrupted;
             g.used += 1;

@@ -133,7 +133,6 @@ pub struct Workspace {
     dist: Vec<f64>,
     score: Vec<f64>,
     keep: Vec<bool>,
-    /// The weighted means' partial sums (`4 * stride`: see `weighted::PARTIALS`).
     acc: Vec<f64>,
     acc2: Vec<f64>,
     /// `decay[k] = exp(-decay_m * k)`, cached for the last coefficient used.
@@ -167,7 +166,7 @@ impl Workspace {
             dist: vec![0.0; capacity * capacity],
             score: vec![0.0; capacity],
             keep: vec![false; capacity],
-            acc: vec![0.0; 4 * stride],
+            acc: vec![0.0; stride],
             acc2: vec![0.0; dim],
             decay: vec![1.0; capacity],
             decay_m: 0.0,

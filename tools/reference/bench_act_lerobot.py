@@ -7,13 +7,13 @@ layers, latent 16) configurations on PushT keypoints, random init. Median of `--
 """
 import argparse
 import statistics
-import time
 
 import torch
 
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.act.configuration_act import ACTConfig
 from lerobot.policies.act.modeling_act import ACTPolicy
+from timing import per_rep
 
 PRESETS = {
     "paper": {},
@@ -35,13 +35,7 @@ def make(preset):
 
 
 def timed(fn, reps, inner):
-    out = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        for _ in range(inner):
-            fn()
-        out.append((time.perf_counter() - t0) / inner)
-    return statistics.median(out)
+    return statistics.median(per_rep(fn, reps, inner))
 
 
 def main():

@@ -25,7 +25,6 @@ import argparse
 import json
 import statistics
 import struct
-import time
 from pathlib import Path
 
 import torch
@@ -39,6 +38,7 @@ from lerobot.policies.diffusion.modeling_diffusion import (
     DiffusionConditionalUnet1d,
     SpatialSoftmax,
 )
+from timing import per_rep
 
 WIDTH = 16  # mte's `vision_backbone_width` of the cpu image preset
 KEYPOINTS = 32
@@ -162,12 +162,7 @@ def pgd_iteration(net, sched, x, base, state, x0, gen):
 
 
 def timed(fn, reps, inner):
-    out = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        for _ in range(inner):
-            fn()
-        out.append((time.perf_counter() - t0) / inner)
+    out = per_rep(fn, reps, inner)
     return statistics.median(out), min(out)
 
 

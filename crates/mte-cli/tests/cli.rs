@@ -285,11 +285,15 @@ fn bundled() -> std::path::PathBuf {
         .join("../../assets/policies/pusht_keypoints_cpu")
 }
 
-/// Both bundled image policies load from a fresh clone and drive PushT from pixels: a short
+/// Every bundled image policy loads from a fresh clone and drives PushT from pixels: a short
 /// episode runs, and its coverage is a valid fraction.
 #[test]
 fn bundled_image_policies_run_an_episode() {
-    for name in ["pusht_image_cpu", "pusht_image_cpu_v2"] {
+    for name in [
+        "pusht_image_cpu",
+        "pusht_image_cpu_v2",
+        "pusht_image_cpu_v3",
+    ] {
         let ckpt = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("../../assets/policies")
             .join(name);

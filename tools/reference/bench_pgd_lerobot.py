@@ -22,14 +22,13 @@ into these modules: every parameter's name and shape must match.
 Timings on stdout (not a fixture); BENCHMARKS.md gives them beside mte's.
 """
 import argparse
-import json
 import statistics
-import struct
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from diffusers.schedulers.scheduling_ddpm import DDPMScheduler
+from safetensors.torch import load_file
 from torch import nn
 
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -119,22 +118,6 @@ def config():
     )
 
 
-def read_safetensors(path):
-    """The f32 tensors of a safetensors file (no extra dependency)."""
-    raw = Path(path).read_bytes()
-    n = struct.unpack("<Q", raw[:8])[0]
-    header = json.loads(raw[8 : 8 + n])
-    out = {}
-    for name, meta in header.items():
-        if name == "__metadata__":
-            continue
-        assert meta["dtype"] == "F32", (name, meta["dtype"])
-        a, b = meta["data_offsets"]
-        buf = bytearray(raw[8 + n + a : 8 + n + b])
-        out[name] = torch.frombuffer(buf, dtype=torch.float32).reshape(meta["shape"])
-    return out
-
-
 class Network(nn.Module):
     def __init__(self, cfg):
         super().__init__()
@@ -180,7 +163,7 @@ def main():
     torch.manual_seed(0)
     net = Network(config())
     if args.checkpoint:
-        tensors = read_safetensors(Path(args.checkpoint) / "model.safetensors")
+        tensors = load_file(Path(args.checkpoint) / "model.safetensors")
         mine = {k[len("diffusion.") :]: v for k, v in tensors.items() if k.startswith("diffusion.")}
         # Every parameter must be there with its shape; only the spatial softmax's fixed
         # coordinate grid (a buffer, not learned) is not stored in mte's checkpoints.

@@ -96,7 +96,7 @@ mod tests {
                 let padded = rows(n, d, stride);
                 let plain: Vec<f32> = padded
                     .chunks_exact(stride)
-                    .flat_map(|r| r[..d].to_vec())
+                    .flat_map(|r| r[..d].iter().copied())
                     .collect();
                 for agg in [Aggregator::default(), Aggregator::Mean] {
                     let mut ws = Workspace::new(n, d);

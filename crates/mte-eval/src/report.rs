@@ -792,16 +792,16 @@ pub fn build(
         distributions.extend(d);
         overhead.extend(arm_overhead(&cells, arm));
     }
-    let defence = match &opts.defence {
-        Some(pair) => Some(defence::build(&cells, pair, &all_arms, &mut notes)?),
-        None => None,
-    };
     let controls = if opts.controls.is_empty() {
         None
     } else {
         Some(control::build(&cells, &opts.controls, &mut notes)?)
     };
-    let plots = plots(&cells, &corrupted, &baseline, &main)?
+    let defence = match &opts.defence {
+        Some(pair) => Some(defence::build(&cells, pair, &all_arms, &mut notes)?),
+        None => None,
+    };
+    let plots = plots(&cells, &corrupted, &baseline, &main, defence.as_ref())?
         .into_iter()
         .map(Plot::new)
         .collect::<Result<Vec<_>, _>>()?;
@@ -2078,9 +2078,29 @@ mod tests {
             md.contains("## 9. Defence: `runs/ft/tuned` against `pusht_keypoints`"),
             "{md}"
         );
-        // Without the option the report has no section 9.
+        // The undefended policy's recovered-fraction plot carries the defence's series: the
+        // table's fraction at q = 1, with a paired jackknife error bar.
+        let series_of = |r: &Report| -> Vec<Series> {
+            r.plots
+                .iter()
+                .filter(|p| p.name.starts_with("recovered-pusht_keypoints"))
+                .flat_map(|p| p.spec.series.clone())
+                .filter(|s| s.label == "tuned (ewm:0.01)")
+                .collect()
+        };
+        let def = series_of(&r);
+        assert_eq!(def.len(), 1, "one defence series");
+        assert_eq!(def[0].points.len(), 1);
+        let p = &def[0].points[0];
+        assert_eq!((p.x, p.y), (1.0, got));
+        let (cl, b) = (CLEAN_EWM.to_vec(), Q1_EWM.to_vec());
+        let (_, se) =
+            mte_stats::recovered_fraction_jackknife(&cl, &b, &offsets).expect("jackknife");
+        assert_eq!(p.err, Some(se));
+        // Without the option the report has no section 9 and no defence series.
         let plain = build(&m, &l, &ReportOptions::default()).expect("report");
         assert!(plain.defence.is_none() && !plain.markdown().contains("## 9. Defence"));
+        assert!(series_of(&plain).is_empty());
     }
 
     #[test]

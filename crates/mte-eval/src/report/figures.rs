@@ -4,19 +4,34 @@
 use super::*;
 
 /// Specs of every plot: coverage and success against `q`, recovered fraction against the
-/// attack budget (or `q`).
+/// attack budget (or `q`); with a defence table, the undefended policy's recovered-fraction
+/// plots also carry the defence's own series (the paper's Figure 1: the median and encoder
+/// fine-tuning on one budget axis).
 pub(super) fn plots(
     cells: &[CellData<'_>],
     corrupted: &[usize],
     baseline: &str,
     main: &[MainRow],
+    defence: Option<&DefenceTable>,
 ) -> Result<Vec<PlotSpec>, ReportError> {
     let mut taken = HashSet::new();
     let mut specs = coverage_plots(cells, corrupted, &mut taken)?;
-    specs.extend(recovered_plots(
-        cells, corrupted, baseline, main, &mut taken,
-    )?);
+    let ctx = RecoveredCtx {
+        cells,
+        baseline,
+        main,
+        defence,
+    };
+    specs.extend(recovered_plots(&ctx, corrupted, &mut taken)?);
     Ok(specs)
+}
+
+/// What the recovered-fraction plots read.
+struct RecoveredCtx<'c, 'a> {
+    cells: &'c [CellData<'a>],
+    baseline: &'c str,
+    main: &'c [MainRow],
+    defence: Option<&'c DefenceTable>,
 }
 
 /// Plots (a): coverage and success against q, per (policy, fault, schedule kind, h).
@@ -120,12 +135,11 @@ fn coverage_plots(
 /// Plots (b): the recovered fraction against the attack budget (or q), per (policy, fault
 /// kind, h); only cells whose denominator is significantly above zero.
 fn recovered_plots(
-    cells: &[CellData<'_>],
+    ctx: &RecoveredCtx<'_, '_>,
     corrupted: &[usize],
-    baseline: &str,
-    main: &[MainRow],
     taken: &mut HashSet<String>,
 ) -> Result<Vec<PlotSpec>, ReportError> {
+    let (cells, baseline, main) = (ctx.cells, ctx.baseline, ctx.main);
     let mut specs = Vec::new();
     // (b) Recovered fraction against the attack budget (or q), per (policy, fault kind, h).
     let mut groups: Vec<((String, String, usize), Vec<usize>)> = Vec::new();
@@ -193,6 +207,7 @@ fn recovered_plots(
                 }
             }
         }
+        series.extend(defended_series(ctx, policy, used, by_budget));
         if series.is_empty() {
             continue;
         }
@@ -248,31 +263,82 @@ fn recovered_point(
         return Ok(None);
     };
     let err = clean_of(cells, ci).and_then(|cj| {
-        let (cl, b, o) = seed_triples(&cells[cj], c, baseline, arm);
-        mte_stats::recovered_fraction_jackknife(&cl, &b, &o)
-            .ok()
-            .map(|(_, se)| se)
+        let eps = [
+            cells[cj].episodes(baseline),
+            c.episodes(baseline),
+            c.episodes(arm),
+        ];
+        jackknife_se(eps)
     });
     Ok(Some(Point { x, y, err }))
 }
 
-/// Max coverage per seed, on the seeds all three ran: the baseline arm on the clean cell,
-/// the baseline on `cell`, and `arm` on `cell`.
-fn seed_triples(
-    clean: &CellData<'_>,
-    cell: &CellData<'_>,
-    baseline: &str,
-    arm: &str,
-) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+/// The defence's series on the undefended `policy`'s plot over the cells `used`: at each
+/// cell where the defence table has a row for the baseline arm with a defined recovered
+/// fraction (`(defended − undefended) / (clean − undefended)`, both policies deployed with the
+/// baseline aggregator), that fraction with its paired jackknife standard error.
+fn defended_series(
+    ctx: &RecoveredCtx<'_, '_>,
+    policy: &str,
+    used: &[usize],
+    by_budget: bool,
+) -> Option<Series> {
+    let d = ctx.defence?;
+    if policy != d.undefended && policy_label(policy) != d.undefended {
+        return None;
+    }
+    let cell = |id: &str| ctx.cells.iter().find(|c| c.spec.id == id);
+    let mut points = Vec::new();
+    for &ci in used {
+        let u = &ctx.cells[ci];
+        let row = d
+            .rows
+            .iter()
+            .find(|r| r.undefended_cell == u.spec.id && r.arm == ctx.baseline);
+        let (Some(row), Some(clean)) = (row, clean_of(ctx.cells, ci)) else {
+            continue;
+        };
+        let (Some(y), Some(dc)) = (row.recovered.coverage, cell(&row.defended_cell)) else {
+            continue;
+        };
+        let b = ctx.baseline;
+        let eps = [ctx.cells[clean].episodes(b), u.episodes(b), dc.episodes(b)];
+        let x = if by_budget {
+            u.spec.budget().unwrap_or(0.0)
+        } else {
+            u.spec.q() as f64
+        };
+        points.push(Point {
+            x,
+            y,
+            err: jackknife_se(eps),
+        });
+    }
+    points.sort_by(|a, b| a.x.total_cmp(&b.x));
+    (!points.is_empty()).then(|| Series {
+        label: format!("{} ({})", policy_label(&d.defended), ctx.baseline),
+        points,
+    })
+}
+
+/// The recovered fraction's delete-one jackknife standard error over the seeds that ran all
+/// three of `[clean, corrupted baseline, other]` (max coverage per seed).
+fn jackknife_se(eps: [&[&EpisodeRecord]; 3]) -> Option<f64> {
+    let (cl, b, o) = seed_triples(eps);
+    mte_stats::recovered_fraction_jackknife(&cl, &b, &o)
+        .ok()
+        .map(|(_, se)| se)
+}
+
+/// Max coverage per seed, on the seeds all three ran, in the order of the second list: the
+/// clean reference, the corrupted baseline and the other arm (or policy).
+fn seed_triples([clean, base, other]: [&[&EpisodeRecord]; 3]) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     let by_seed = |eps: &[&EpisodeRecord]| -> HashMap<u64, f64> {
         eps.iter().map(|r| (r.seed, r.max_coverage)).collect()
     };
-    let (cl, other) = (
-        by_seed(clean.episodes(baseline)),
-        by_seed(cell.episodes(arm)),
-    );
+    let (cl, other) = (by_seed(clean), by_seed(other));
     let mut out = (Vec::new(), Vec::new(), Vec::new());
-    for b in cell.episodes(baseline) {
+    for b in base {
         if let (Some(&c), Some(&o)) = (cl.get(&b.seed), other.get(&b.seed)) {
             out.0.push(c);
             out.1.push(b.max_coverage);

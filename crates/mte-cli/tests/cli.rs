@@ -285,14 +285,16 @@ fn bundled() -> std::path::PathBuf {
         .join("../../assets/policies/pusht_keypoints_cpu")
 }
 
-/// Every bundled image policy loads from a fresh clone and drives PushT from pixels: a short
-/// episode runs, and its coverage is a valid fraction.
+/// Every bundled image policy (three U-Nets and the Diffusion Transformer) loads from a fresh
+/// clone and drives PushT from pixels: a short episode runs, and its coverage is a valid
+/// fraction.
 #[test]
 fn bundled_image_policies_run_an_episode() {
     for name in [
         "pusht_image_cpu",
         "pusht_image_cpu_v2",
         "pusht_image_cpu_v3",
+        "pusht_image_dit_cpu",
     ] {
         let ckpt = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("../../assets/policies")

@@ -2092,15 +2092,59 @@ mod tests {
         assert_eq!(def.len(), 1, "one defence series");
         assert_eq!(def[0].points.len(), 1);
         let p = &def[0].points[0];
-        assert_eq!((p.x, p.y), (1.0, got));
         let (cl, b) = (CLEAN_EWM.to_vec(), Q1_EWM.to_vec());
-        let (_, se) =
+        let (f, se) =
             mte_stats::recovered_fraction_jackknife(&cl, &b, &offsets).expect("jackknife");
-        assert_eq!(p.err, Some(se));
+        assert_eq!((p.x, p.y, p.err), (1.0, f, Some(se)));
+        assert!(
+            (f - got).abs() < 1e-12,
+            "every seed ran every cell: {f} vs {got}"
+        );
         // Without the option the report has no section 9 and no defence series.
         let plain = build(&m, &l, &ReportOptions::default()).expect("report");
         assert!(plain.defence.is_none() && !plain.markdown().contains("## 9. Defence"));
         assert!(series_of(&plain).is_empty());
+    }
+
+    /// A corrupted cell that has not run every seed yet (a growing run): the plotted
+    /// fractions pair the clean cell's values on the seeds the corrupted cells ran, not its
+    /// mean over all seeds, for the median's series and the defence's alike.
+    #[test]
+    fn recovered_plot_pairs_a_partial_cell_with_the_clean_seeds_it_ran() {
+        let (m, mut l) = defended_run(0.1);
+        let q1 = |c: &str| c.ends_with("blank-burst-q1-h2");
+        l.retain(|line| !matches!(line, Line::Episode(r) if q1(&r.cell) && r.seed < 102));
+        let opts = ReportOptions {
+            defence: Some(DefencePair {
+                undefended: "pusht_keypoints".into(),
+                defended: "runs/ft/tuned".into(),
+            }),
+            ..Default::default()
+        };
+        let r = build(&m, &l, &opts).unwrap_or_else(|e| panic!("{e}"));
+        let plot = r
+            .plots
+            .iter()
+            .find(|p| p.name.starts_with("recovered-pusht_keypoints"))
+            .expect("the undefended policy's plot");
+        let point = |label: &str| {
+            let s = plot.spec.series.iter().find(|s| s.label == label);
+            s.and_then(|s| s.points.iter().find(|p| p.x == 1.0))
+                .cloned()
+        };
+        let (cl, b) = (CLEAN_EWM[2..].to_vec(), Q1_EWM[2..].to_vec());
+        let lifted: Vec<f64> = b.iter().map(|x| x + 0.1).collect();
+        let median = Q1_MEDIAN[2..].to_vec();
+        for (label, other) in [(MEDIAN, &median), ("tuned (ewm:0.01)", &lifted)] {
+            let p = point(label).unwrap_or_else(|| panic!("{label} at q = 1"));
+            let (f, se) = mte_stats::recovered_fraction_jackknife(&cl, &b, other).expect("jk");
+            assert_eq!((p.y, p.err), (f, Some(se)), "{label}");
+        }
+        // The defence table's fraction takes the clean cell's mean over all 8 seeds: it differs.
+        let row = &r.defence.as_ref().expect("table").rows[0];
+        let table = row.recovered.coverage.expect("defined");
+        let plotted = point("tuned (ewm:0.01)").expect("point").y;
+        assert!((table - plotted).abs() > 1e-4, "{table} vs {plotted}");
     }
 
     #[test]

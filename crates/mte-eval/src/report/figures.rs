@@ -234,8 +234,9 @@ fn recovered_plots(
 }
 
 /// The recovered fraction of `arm` against `baseline` on cell `ci` at `x`, where the main
-/// table's denominator is significantly above zero, with its paired standard error: the
-/// jackknife over the seeds that ran the clean cell, the corrupted baseline and the arm.
+/// table's denominator is significantly above zero: on the seeds that ran the clean cell,
+/// the corrupted baseline and the arm, with its paired jackknife standard error (the main
+/// table's value where the policy has no clean cell to pair with).
 fn recovered_point(
     cells: &[CellData<'_>],
     ci: usize,
@@ -262,21 +263,28 @@ fn recovered_point(
     let Some(y) = y.filter(|y| y.is_finite()) else {
         return Ok(None);
     };
-    let err = clean_of(cells, ci).and_then(|cj| {
-        let eps = [
+    let paired = clean_of(cells, ci).and_then(|cj| {
+        paired_fraction([
             cells[cj].episodes(baseline),
             c.episodes(baseline),
             c.episodes(arm),
-        ];
-        jackknife_se(eps)
+        ])
     });
-    Ok(Some(Point { x, y, err }))
+    Ok(Some(match paired {
+        Some((y, se)) => Point {
+            x,
+            y,
+            err: Some(se),
+        },
+        None => Point { x, y, err: None },
+    }))
 }
 
 /// The defence's series on the undefended `policy`'s plot over the cells `used`: at each
 /// cell where the defence table has a row for the baseline arm with a defined recovered
 /// fraction (`(defended − undefended) / (clean − undefended)`, both policies deployed with the
-/// baseline aggregator), that fraction with its paired jackknife standard error.
+/// baseline aggregator), that fraction on the seeds all three cells ran, with its paired
+/// jackknife standard error.
 fn defended_series(
     ctx: &RecoveredCtx<'_, '_>,
     policy: &str,
@@ -298,11 +306,14 @@ fn defended_series(
         let (Some(row), Some(clean)) = (row, clean_of(ctx.cells, ci)) else {
             continue;
         };
-        let (Some(y), Some(dc)) = (row.recovered.coverage, cell(&row.defended_cell)) else {
+        let (Some(_), Some(dc)) = (row.recovered.coverage, cell(&row.defended_cell)) else {
             continue;
         };
         let b = ctx.baseline;
         let eps = [ctx.cells[clean].episodes(b), u.episodes(b), dc.episodes(b)];
+        let Some((y, se)) = paired_fraction(eps) else {
+            continue;
+        };
         let x = if by_budget {
             u.spec.budget().unwrap_or(0.0)
         } else {
@@ -311,7 +322,7 @@ fn defended_series(
         points.push(Point {
             x,
             y,
-            err: jackknife_se(eps),
+            err: Some(se),
         });
     }
     points.sort_by(|a, b| a.x.total_cmp(&b.x));
@@ -321,13 +332,13 @@ fn defended_series(
     })
 }
 
-/// The recovered fraction's delete-one jackknife standard error over the seeds that ran all
-/// three of `[clean, corrupted baseline, other]` (max coverage per seed).
-fn jackknife_se(eps: [&[&EpisodeRecord]; 3]) -> Option<f64> {
+/// The recovered fraction and its delete-one jackknife standard error, both over the seeds
+/// that ran all three of `[clean, corrupted baseline, other]` (max coverage per seed). The
+/// point uses the clean cell's values on those seeds only, so a partial corrupted cell (a run
+/// still growing) is not compared with the clean mean of seeds it has not run.
+fn paired_fraction(eps: [&[&EpisodeRecord]; 3]) -> Option<(f64, f64)> {
     let (cl, b, o) = seed_triples(eps);
-    mte_stats::recovered_fraction_jackknife(&cl, &b, &o)
-        .ok()
-        .map(|(_, se)| se)
+    mte_stats::recovered_fraction_jackknife(&cl, &b, &o).ok()
 }
 
 /// Max coverage per seed, on the seeds all three ran, in the order of the second list: the

@@ -2025,17 +2025,21 @@ mod tests {
         (m, l)
     }
 
-    #[test]
-    fn defence_table_pairs_cells_by_corruption_and_gives_the_recovered_fraction() {
-        let (m, l) = defended_run(0.1);
-        let opts = ReportOptions {
+    /// Report options with the defence table of `defended_run`'s two policies.
+    fn tuned_defence() -> ReportOptions {
+        ReportOptions {
             defence: Some(DefencePair {
                 undefended: "pusht_keypoints".into(),
                 defended: "runs/ft/tuned".into(),
             }),
             ..Default::default()
-        };
-        let r = build(&m, &l, &opts).unwrap_or_else(|e| panic!("{e}"));
+        }
+    }
+
+    #[test]
+    fn defence_table_pairs_cells_by_corruption_and_gives_the_recovered_fraction() {
+        let (m, l) = defended_run(0.1);
+        let r = build(&m, &l, &tuned_defence()).unwrap_or_else(|e| panic!("{e}"));
         let t = r.defence.as_ref().expect("defence table");
         assert_eq!(t.rows.len(), 2, "one pair of cells x two arms");
         let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
@@ -2114,14 +2118,7 @@ mod tests {
         let (m, mut l) = defended_run(0.1);
         let q1 = |c: &str| c.ends_with("blank-burst-q1-h2");
         l.retain(|line| !matches!(line, Line::Episode(r) if q1(&r.cell) && r.seed < 102));
-        let opts = ReportOptions {
-            defence: Some(DefencePair {
-                undefended: "pusht_keypoints".into(),
-                defended: "runs/ft/tuned".into(),
-            }),
-            ..Default::default()
-        };
-        let r = build(&m, &l, &opts).unwrap_or_else(|e| panic!("{e}"));
+        let r = build(&m, &l, &tuned_defence()).unwrap_or_else(|e| panic!("{e}"));
         let plot = r
             .plots
             .iter()

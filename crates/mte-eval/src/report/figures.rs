@@ -185,11 +185,7 @@ fn recovered_plots(
                     {
                         continue;
                     }
-                    let x = if by_budget {
-                        c.spec.budget().unwrap_or(0.0)
-                    } else {
-                        c.spec.q() as f64
-                    };
+                    let x = axis_x(c.spec, by_budget);
                     if let Some(p) = recovered_point(cells, ci, row_of(ci), baseline, arm, x)? {
                         pts.push(p);
                     }
@@ -270,14 +266,21 @@ fn recovered_point(
             c.episodes(arm),
         ])
     });
-    Ok(Some(match paired {
-        Some((y, se)) => Point {
-            x,
-            y,
-            err: Some(se),
-        },
-        None => Point { x, y, err: None },
-    }))
+    let (y, err) = match paired {
+        Some((y, se)) => (y, Some(se)),
+        None => (y, None),
+    };
+    Ok(Some(Point { x, y, err }))
+}
+
+/// A cell's position on a recovered-fraction plot: its attack budget, or its `q` when the
+/// plot is against `q`.
+fn axis_x(spec: &CellSpec, by_budget: bool) -> f64 {
+    if by_budget {
+        spec.budget().unwrap_or(0.0)
+    } else {
+        spec.q() as f64
+    }
 }
 
 /// The defence's series on the undefended `policy`'s plot over the cells `used`: at each
@@ -314,13 +317,8 @@ fn defended_series(
         let Some((y, se)) = paired_fraction(eps) else {
             continue;
         };
-        let x = if by_budget {
-            u.spec.budget().unwrap_or(0.0)
-        } else {
-            u.spec.q() as f64
-        };
         points.push(Point {
-            x,
+            x: axis_x(u.spec, by_budget),
             y,
             err: Some(se),
         });

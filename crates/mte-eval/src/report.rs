@@ -57,7 +57,7 @@ mod roc;
 
 use figures::plots;
 
-use render::{Block, code, delta, est, est_rate, f3, fmt_p, opt_p, pct, table};
+use render::{Block, code, delta, est, est_rate, f3, fmt_p, fraction_se, opt_p, pct, table};
 
 pub use control::{ControlPair, ControlRow, ControlTable};
 pub use defence::{DefencePair, DefenceRow, DefenceTable};
@@ -363,6 +363,12 @@ pub struct CleanRef {
 pub struct Recovered {
     /// On mean max coverage.
     pub coverage: Option<f64>,
+    /// Paired jackknife standard error of `coverage` (leave one seed out); `None` where
+    /// `coverage` is, or where a leave-one-out denominator is zero.
+    pub coverage_se: Option<f64>,
+    /// The seeds the fractions are computed on: those that ran the clean cell and both arms
+    /// under the corruption (0 where undefined).
+    pub seeds: usize,
     /// On success rate.
     pub success: Option<f64>,
     /// Against each arm's own clean value, on mean max coverage: the share of the
@@ -977,9 +983,15 @@ fn main_rows(
                 c.spec.id, cmp.unpaired
             ));
         }
+        let no_eps: &[&EpisodeRecord] = &[];
+        let on_clean = |arm: &str| clean_cell.map_or(no_eps, |cc| cc.episodes(arm));
         let recovered = recovered(
-            (clean.as_ref(), robust_clean.as_ref()),
-            comparison.as_ref(),
+            RecoveryEpisodes {
+                clean: on_clean(baseline),
+                base: c.episodes(baseline),
+                other: c.episodes(robust),
+                other_clean: on_clean(robust),
+            },
             den,
         );
         main.push(MainRow {
@@ -1213,64 +1225,132 @@ fn clean_ref(c: &CellData<'_>, arm: &str) -> Result<Option<CleanRef>, ReportErro
     )
 }
 
-/// Recovered fractions of a row; `None` with the reason where undefined, or where the
-/// denominator is not significantly above zero ("not meaningful").
-fn recovered(
-    (clean, robust_clean): (Option<&CleanRef>, Option<&CleanRef>),
-    cmp: Option<&Comparison>,
-    denominator: Option<Denominator>,
-) -> Recovered {
+/// The episodes a recovered fraction is computed from, each one arm on one cell; an empty
+/// list where the run has no such cell or arm.
+#[derive(Clone, Copy)]
+struct RecoveryEpisodes<'e, 'r> {
+    /// The baseline on its clean cell.
+    clean: &'e [&'r EpisodeRecord],
+    /// The baseline under the corruption.
+    base: &'e [&'r EpisodeRecord],
+    /// The robust arm (or the defended policy) under the corruption.
+    other: &'e [&'r EpisodeRecord],
+    /// The robust arm (or the defended policy) on its own clean cell.
+    other_clean: &'e [&'r EpisodeRecord],
+}
+
+/// Episodes of the same seed in each list, in the order of the second list: one entry per
+/// seed that every list ran.
+fn same_seeds<'r, const N: usize>(lists: [&[&'r EpisodeRecord]; N]) -> Vec<[&'r EpisodeRecord; N]> {
+    let maps: Vec<HashMap<u64, &'r EpisodeRecord>> = lists
+        .iter()
+        .map(|l| l.iter().map(|r| (r.seed, *r)).collect())
+        .collect();
+    let Some(order) = lists.get(1).or(lists.first()) else {
+        return Vec::new();
+    };
+    order
+        .iter()
+        .filter_map(|r| {
+            let mut out = [*r; N];
+            for (slot, m) in out.iter_mut().zip(&maps) {
+                *slot = *m.get(&r.seed)?;
+            }
+            Some(out)
+        })
+        .collect()
+}
+
+/// Recovered fractions of a row, on the seeds that ran the clean cell and both arms under
+/// the corruption (so a cell that has not run every seed is paired with the clean values of
+/// the seeds it ran); `None` with the reason where undefined, or where the denominator is
+/// not significantly above zero ("not meaningful").
+fn recovered(eps: RecoveryEpisodes<'_, '_>, denominator: Option<Denominator>) -> Recovered {
     let undefined = |note: &str| Recovered {
         coverage: None,
+        coverage_se: None,
+        seeds: 0,
         success: None,
         coverage_own: None,
         note: Some(note.into()),
         denominator,
     };
-    let Some(clean) = clean else {
+    if eps.clean.is_empty() {
         return undefined("no clean cell with the baseline arm for this policy and h");
-    };
-    let Some((b, o)) = cmp.and_then(|c| c.baseline.zip(c.other)) else {
+    }
+    if eps.base.is_empty() || eps.other.is_empty() {
         return undefined("no paired episodes");
-    };
+    }
     let Some(den) = denominator.filter(|d| d.n > 0) else {
         return undefined(
             "no seed ran both the clean and the corrupted cell: the denominator cannot be tested",
         );
     };
-    let (coverage, note) = if !den.coverage_meaningful() {
-        (
-            None,
-            Some(format!(
-                "not meaningful: the corruption does not lower the baseline's coverage \
-                 significantly (clean − corrupted {}, paired Wilcoxon p = {}, n = {})",
-                den.coverage_delta
-                    .map_or_else(|| "n/a".into(), |d| format!("{d:+.3}")),
-                den.coverage_p.map_or_else(|| "n/a".into(), fmt_p),
-                den.n
-            )),
-        )
+    let triples = same_seeds([eps.clean, eps.base, eps.other]);
+    if triples.is_empty() {
+        return undefined("no seed ran the clean cell and both arms under the corruption");
+    }
+    let column = |i: usize, f: fn(&EpisodeRecord) -> f64| -> Vec<f64> {
+        triples.iter().map(|t| f(t[i])).collect()
+    };
+    let cov = |r: &EpisodeRecord| r.max_coverage;
+    let (cl, b, o) = (column(0, cov), column(1, cov), column(2, cov));
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let (coverage, coverage_se, note) = if !den.coverage_meaningful() {
+        (None, None, Some(not_meaningful(&den)))
     } else {
-        match recovered_fraction(clean.coverage.mean, b.mean, o.mean) {
-            Ok(f) => (Some(f), None),
-            Err(e) => (None, Some(e.to_string())),
+        match recovered_fraction(mean(&cl), mean(&b), mean(&o)) {
+            Ok(f) => {
+                let se = mte_stats::recovered_fraction_jackknife(&cl, &b, &o).ok();
+                (Some(f), se.map(|(_, se)| se), None)
+            }
+            Err(e) => (None, None, Some(e.to_string())),
         }
     };
-    let success = cmp
-        .and_then(|c| c.baseline_success.zip(c.other_success))
-        .filter(|_| den.success_meaningful())
-        .and_then(|(sb, so)| recovered_fraction(clean.success, sb, so).ok());
-    let coverage_own = coverage.and(robust_clean).map(|rc| {
-        let base_loss = clean.coverage.mean - b.mean;
-        1.0 - (rc.coverage.mean - o.mean) / base_loss
-    });
+    let won = |r: &EpisodeRecord| f64::from(u8::from(r.success));
+    let success = den
+        .success_meaningful()
+        .then(|| {
+            let (sc, sb, so) = (column(0, won), column(1, won), column(2, won));
+            recovered_fraction(mean(&sc), mean(&sb), mean(&so)).ok()
+        })
+        .flatten();
+    let coverage_own = coverage.and_then(|_| own_fraction(eps));
     Recovered {
         coverage,
+        coverage_se,
+        seeds: triples.len(),
         success,
         coverage_own,
         note,
         denominator,
     }
+}
+
+/// The note of a fraction whose denominator is not significantly above zero.
+fn not_meaningful(den: &Denominator) -> String {
+    format!(
+        "not meaningful: the corruption does not lower the baseline's coverage \
+         significantly (clean − corrupted {}, paired Wilcoxon p = {}, n = {})",
+        den.coverage_delta
+            .map_or_else(|| "n/a".into(), |d| format!("{d:+.3}")),
+        den.coverage_p.map_or_else(|| "n/a".into(), fmt_p),
+        den.n
+    )
+}
+
+/// `1 − (robust clean − robust) / (clean − baseline)` on mean max coverage, on the seeds that
+/// ran all four (both clean cells and both arms under the corruption); `None` without them or
+/// with a zero denominator.
+fn own_fraction(eps: RecoveryEpisodes<'_, '_>) -> Option<f64> {
+    let quads = same_seeds([eps.clean, eps.base, eps.other, eps.other_clean]);
+    if quads.is_empty() {
+        return None;
+    }
+    let n = quads.len() as f64;
+    let mean = |i: usize| quads.iter().map(|q| q[i].max_coverage).sum::<f64>() / n;
+    let base_loss = mean(0) - mean(1);
+    (base_loss != 0.0).then(|| 1.0 - (mean(3) - mean(2)) / base_loss)
 }
 
 fn focus_table(
@@ -2137,11 +2217,64 @@ mod tests {
             let (f, se) = mte_stats::recovered_fraction_jackknife(&cl, &b, other).expect("jk");
             assert_eq!((p.y, p.err), (f, Some(se)), "{label}");
         }
-        // The defence table's fraction takes the clean cell's mean over all 8 seeds: it differs.
-        let row = &r.defence.as_ref().expect("table").rows[0];
-        let table = row.recovered.coverage.expect("defined");
-        let plotted = point("tuned (ewm:0.01)").expect("point").y;
-        assert!((table - plotted).abs() > 1e-4, "{table} vs {plotted}");
+        // The tables pair the same way: the defence row and the main row give the plotted
+        // values and errors, on the 6 seeds that ran all three cells, and not the fraction
+        // against the clean cell's mean over all 8 seeds.
+        let def = &r.defence.as_ref().expect("table").rows[0].recovered;
+        let main = &row(&r, Q1).recovered;
+        for (rec, label) in [(def, "tuned (ewm:0.01)"), (main, MEDIAN)] {
+            let p = point(label).expect("point");
+            assert_eq!(
+                (rec.coverage, rec.coverage_se),
+                (Some(p.y), p.err),
+                "{label}"
+            );
+            assert_eq!(rec.seeds, 6, "{label}");
+        }
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let all_seeds = recovered_fraction(mean(&CLEAN_EWM), mean(&b), mean(&median)).unwrap();
+        assert!(
+            (main.coverage.unwrap() - all_seeds).abs() > 1e-4,
+            "{all_seeds}"
+        );
+        // The rendered tables give the fraction with its standard error.
+        let md = r.markdown();
+        let shown = format!(
+            "{:.2} ± {:.2}",
+            def.coverage.unwrap(),
+            def.coverage_se.unwrap()
+        );
+        assert!(md.contains(&shown), "{shown}");
+    }
+
+    /// A clean cell that has not run every seed of a corrupted cell: the fraction is on the
+    /// seeds that ran both, and the report says how many of the paired seeds that is.
+    #[test]
+    fn recovered_fraction_names_the_seeds_it_leaves_out() {
+        let mut l = lines();
+        l.retain(|line| !matches!(line, Line::Episode(r) if r.cell == CLEAN && r.seed == 103));
+        let r = build(&manifest(), &l, &ReportOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+        let rec = &row(&r, Q1).recovered;
+        assert_eq!(rec.seeds, 7);
+        let keep = |v: &[f64]| -> Vec<f64> {
+            v.iter()
+                .enumerate()
+                .filter(|(i, _)| *i != 3)
+                .map(|(_, x)| *x)
+                .collect()
+        };
+        let (f, se) = mte_stats::recovered_fraction_jackknife(
+            &keep(&CLEAN_EWM),
+            &keep(&Q1_EWM),
+            &keep(&Q1_MEDIAN),
+        )
+        .expect("jackknife");
+        assert_eq!((rec.coverage, rec.coverage_se), (Some(f), Some(se)));
+        assert!(
+            r.markdown()
+                .contains("recovered on the 7 of 8 paired seeds that also ran the clean cell"),
+            "the partial pairing is named"
+        );
     }
 
     #[test]

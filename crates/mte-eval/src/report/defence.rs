@@ -13,15 +13,16 @@
 //! over the seeds both ran (Wilcoxon signed-rank), the two-proportion z-test on success
 //! (independent arms, as the paper's patch tables), Holm over the rows (Wilcoxon), and the
 //! recovered fraction `(defended - undefended) / (clean - undefended)` (the main table's
-//! rule: means over the paired seeds).
+//! rule: means over the seeds that ran the clean cell and both policies' corrupted cells,
+//! with a paired jackknife standard error).
 
 use mte_stats::two_proportion_ztest;
 use serde::Serialize;
 
 use super::{
-    Block, CellData, CleanRef, Comparison, Recovered, ReportError, clean_ref, code, compare, delta,
-    denominator, est, f3, holm_opt, opt_p, pct, policy_label, recovered, stats_err, success_count,
-    table,
+    Block, CellData, CleanRef, Comparison, EpisodeRecord, Recovered, RecoveryEpisodes, ReportError,
+    clean_ref, code, compare, delta, denominator, est, f3, fraction_se, holm_opt, opt_p, pct,
+    policy_label, recovered, stats_err, success_count, table,
 };
 
 /// Which two policies the defence table compares (policy paths as in the spec, or their
@@ -149,9 +150,16 @@ pub(super) fn build(
             let undefended_clean = clean(&pair.undefended, d.spec.h, arm)?;
             let den = denominator(u, find(&pair.undefended, "clean", d.spec.h), arm)?;
             let defended_clean = clean(&pair.defended, d.spec.h, arm)?;
+            let no_eps: &[&EpisodeRecord] = &[];
+            let on_clean =
+                |name: &str| find(name, "clean", d.spec.h).map_or(no_eps, |c| c.episodes(arm));
             let recovered = recovered(
-                (undefended_clean.as_ref(), defended_clean.as_ref()),
-                Some(&comparison),
+                RecoveryEpisodes {
+                    clean: on_clean(&pair.undefended),
+                    base: ue,
+                    other: de,
+                    other_clean: on_clean(&pair.defended),
+                },
                 den,
             );
             rows.push(DefenceRow {
@@ -201,7 +209,8 @@ impl DefenceTable {
                  Δ = defended − undefended per seed ± paired standard error, p (W): Wilcoxon \
                  signed-rank on paired coverage, Holm over the rows; success: successes / \
                  episodes, p (z): pooled two-proportion z-test. Recovered: (defended − \
-                 undefended) / (clean − undefended), n/a where undefined."
+                 undefended) / (clean − undefended) on the seeds all three \
+                 cells ran, ± its paired jackknife standard error, n/a where undefined."
                     .into(),
             ),
         ];
@@ -240,7 +249,7 @@ impl DefenceTable {
                     opt_p(r.holm_wilcoxon),
                     format!("{} → {}", sr(r.undefended_success), sr(r.defended_success)),
                     opt_p(r.ztest_p),
-                    fr(r.recovered.coverage),
+                    fraction_se(&r.recovered),
                     fr(r.recovered.success),
                 ]
             })

@@ -286,8 +286,8 @@ fn axis_x(spec: &CellSpec, by_budget: bool) -> f64 {
 /// The defence's series on the undefended `policy`'s plot over the cells `used`: at each
 /// cell where the defence table has a row for the baseline arm with a defined recovered
 /// fraction (`(defended − undefended) / (clean − undefended)`, both policies deployed with the
-/// baseline aggregator), that fraction on the seeds all three cells ran, with its paired
-/// jackknife standard error.
+/// baseline aggregator), the table's fraction: on the seeds all three cells ran, with its
+/// paired jackknife standard error.
 fn defended_series(
     ctx: &RecoveredCtx<'_, '_>,
     policy: &str,
@@ -298,7 +298,6 @@ fn defended_series(
     if policy != d.undefended && policy_label(policy) != d.undefended {
         return None;
     }
-    let cell = |id: &str| ctx.cells.iter().find(|c| c.spec.id == id);
     let mut points = Vec::new();
     for &ci in used {
         let u = &ctx.cells[ci];
@@ -306,22 +305,16 @@ fn defended_series(
             .rows
             .iter()
             .find(|r| r.undefended_cell == u.spec.id && r.arm == ctx.baseline);
-        let (Some(row), Some(clean)) = (row, clean_of(ctx.cells, ci)) else {
+        let Some(rec) = row.map(|r| &r.recovered) else {
             continue;
         };
-        let (Some(_), Some(dc)) = (row.recovered.coverage, cell(&row.defended_cell)) else {
-            continue;
-        };
-        let b = ctx.baseline;
-        let eps = [ctx.cells[clean].episodes(b), u.episodes(b), dc.episodes(b)];
-        let Some((y, se)) = paired_fraction(eps) else {
-            continue;
-        };
-        points.push(Point {
-            x: axis_x(u.spec, by_budget),
-            y,
-            err: Some(se),
-        });
+        if let Some(y) = rec.coverage.filter(|y| y.is_finite()) {
+            points.push(Point {
+                x: axis_x(u.spec, by_budget),
+                y,
+                err: rec.coverage_se,
+            });
+        }
     }
     points.sort_by(|a, b| a.x.total_cmp(&b.x));
     (!points.is_empty()).then(|| Series {
@@ -335,26 +328,9 @@ fn defended_series(
 /// point uses the clean cell's values on those seeds only, so a partial corrupted cell (a run
 /// still growing) is not compared with the clean mean of seeds it has not run.
 fn paired_fraction(eps: [&[&EpisodeRecord]; 3]) -> Option<(f64, f64)> {
-    let (cl, b, o) = seed_triples(eps);
-    mte_stats::recovered_fraction_jackknife(&cl, &b, &o).ok()
-}
-
-/// Max coverage per seed, on the seeds all three ran, in the order of the second list: the
-/// clean reference, the corrupted baseline and the other arm (or policy).
-fn seed_triples([clean, base, other]: [&[&EpisodeRecord]; 3]) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
-    let by_seed = |eps: &[&EpisodeRecord]| -> HashMap<u64, f64> {
-        eps.iter().map(|r| (r.seed, r.max_coverage)).collect()
-    };
-    let (cl, other) = (by_seed(clean), by_seed(other));
-    let mut out = (Vec::new(), Vec::new(), Vec::new());
-    for b in base {
-        if let (Some(&c), Some(&o)) = (cl.get(&b.seed), other.get(&b.seed)) {
-            out.0.push(c);
-            out.1.push(b.max_coverage);
-            out.2.push(o);
-        }
-    }
-    out
+    let triples = same_seeds(eps);
+    let column = |i: usize| -> Vec<f64> { triples.iter().map(|t| t[i].max_coverage).collect() };
+    mte_stats::recovered_fraction_jackknife(&column(0), &column(1), &column(2)).ok()
 }
 
 /// The schedule part of a corruption's text form (`burst-q2`).

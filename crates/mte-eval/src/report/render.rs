@@ -418,7 +418,9 @@ impl Report {
     fn recovered(&self, b: &mut Vec<Block>) {
         b.push(Block::Heading("4. Recovered fraction".into()));
         b.push(Block::Para(format!(
-            "(robust − baseline) / (clean − baseline) on mean max coverage and on success rate: \
+            "(robust − baseline) / (clean − baseline) on mean max coverage and on success rate, \
+             on the seeds that ran the clean cell and both arms under the corruption, ± its \
+             paired jackknife standard error (leave one seed out): \
              1 restores the clean baseline, 0 does nothing. n/a where undefined, and where the \
              denominator is not significantly above zero (the corruption does not lower the \
              baseline: paired Wilcoxon on coverage, {} on success, p < 0.05 over \
@@ -440,6 +442,9 @@ impl Report {
                 if let Some(n) = &r.recovered.note {
                     reasons.push(format!("{}: {n}", code(&r.cell)));
                 }
+                if let Some(n) = partial_seeds(&r.recovered, c.map_or(0, |c| c.n)) {
+                    reasons.push(format!("{}: {n}", code(&r.cell)));
+                }
                 let fr = |v: Option<f64>| v.map_or_else(|| "n/a".into(), |v| format!("{v:.2}"));
                 vec![
                     code(&r.cell),
@@ -453,7 +458,7 @@ impl Report {
                     r.robust_clean
                         .as_ref()
                         .map_or_else(|| "—".into(), |k| f3(k.coverage.mean)),
-                    fr(r.recovered.coverage),
+                    fraction_se(&r.recovered),
                     fr(r.recovered.coverage_own),
                     fr(r.recovered.success),
                 ]
@@ -894,4 +899,25 @@ pub(super) fn html_inline(s: &str) -> String {
             }
         })
         .collect()
+}
+
+/// A recovered fraction on coverage with its paired standard error (`1.88 ± 0.61`), `n/a`
+/// where undefined.
+pub(super) fn fraction_se(r: &Recovered) -> String {
+    match (r.coverage, r.coverage_se) {
+        (Some(f), Some(se)) => format!("{f:.2} ± {se:.2}"),
+        (Some(f), None) => format!("{f:.2}"),
+        _ => "n/a".into(),
+    }
+}
+
+/// A note when a defined fraction is computed on fewer seeds than the corrupted comparison
+/// pairs (`paired`): a cell that has not run every seed of its clean cell, or the reverse.
+pub(super) fn partial_seeds(r: &Recovered, paired: usize) -> Option<String> {
+    (r.coverage.is_some() && r.seeds < paired).then(|| {
+        format!(
+            "recovered on the {} of {paired} paired seeds that also ran the clean cell",
+            r.seeds
+        )
+    })
 }

@@ -156,6 +156,18 @@ fn all_finite(values: &[f32]) -> bool {
         == 0
 }
 
+/// [`all_finite`] in three lane operations per value (and, add, or), the form the wide
+/// levels run fastest: a magnitude's bits (sign cleared) at or above an all-ones exponent
+/// (infinity or NaN) carry into the sign bit when the exponent's lowest bit is added.
+#[inline(always)]
+fn all_finite_carry(values: &[f32]) -> bool {
+    const EXP_LSB: u32 = 0x0080_0000;
+    let acc = values.iter().fold(0u32, |acc, v| {
+        acc | (v.to_bits() & 0x7fff_ffff).wrapping_add(EXP_LSB)
+    });
+    acc & 0x8000_0000 == 0
+}
+
 /// Rings of rows above this size (bytes) take the large-chunk paths: half a typical 32-48 KiB
 /// L1 data cache.
 const LARGE_RING_BYTES: usize = 16 * 1024;
@@ -165,7 +177,7 @@ const LARGE_RING_BYTES: usize = 16 * 1024;
 /// chunk cost more than the copy it guards.
 #[multiversion::multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2", "aarch64+neon"))]
 fn chunk_finite(values: &[f32]) -> bool {
-    all_finite(values)
+    all_finite_carry(values)
 }
 
 /// Streaming temporal ensembler.
@@ -466,18 +478,10 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         }
         self.cursor = Some(tau);
         self.evict_before(tau);
-        let g = match self.dim {
-            1 => self.gather::<1>(tau),
-            2 => self.gather::<2>(tau),
-            3 => self.gather::<3>(tau),
-            4 => self.gather::<4>(tau),
-            5 => self.gather::<5>(tau),
-            6 => self.gather::<6>(tau),
-            7 => self.gather::<7>(tau),
-            8 => self.gather::<8>(tau),
-            10 => self.gather::<10>(tau),
-            14 => self.gather::<14>(tau),
-            _ => self.gather::<0>(tau),
+        let g = if self.large {
+            self.gather_large(tau)
+        } else {
+            self.gather_any(tau)
         };
         if g.m == 0 {
             let earliest = tau.saturating_sub((self.span - 1) as u64);
@@ -522,6 +526,39 @@ impl<A: Aggregate> TemporalEnsembler<A> {
             None
         };
         Ok((report, bracket))
+    }
+
+    /// [`gather`](Self::gather) with the action dimension as a constant where a
+    /// specialisation exists.
+    #[inline(always)]
+    fn gather_any(&mut self, tau: u64) -> Gathered {
+        match self.dim {
+            1 => self.gather::<1>(tau),
+            2 => self.gather::<2>(tau),
+            3 => self.gather::<3>(tau),
+            4 => self.gather::<4>(tau),
+            5 => self.gather::<5>(tau),
+            6 => self.gather::<6>(tau),
+            7 => self.gather::<7>(tau),
+            8 => self.gather::<8>(tau),
+            10 => self.gather::<10>(tau),
+            14 => self.gather::<14>(tau),
+            _ => self.gather::<0>(tau),
+        }
+    }
+
+    /// The gather of a ring too large for L1: [`gather_finite`](Self::gather_finite) where
+    /// the dimension has a specialisation and every candidate chunk is finite, else
+    /// [`gather`](Self::gather). Out of line, so that the small rings' step keeps its code.
+    #[inline(never)]
+    fn gather_large(&mut self, tau: u64) -> Gathered {
+        let fast = match self.dim {
+            2 => self.gather_finite::<2>(tau),
+            7 => self.gather_finite::<7>(tau),
+            14 => self.gather_finite::<14>(tau),
+            _ => None,
+        };
+        fast.unwrap_or_else(|| self.gather_any(tau))
     }
 
     /// Copies the finite candidates for `tau` into `cand` (rows padded to `stride`), oldest
@@ -570,6 +607,76 @@ impl<A: Aggregate> TemporalEnsembler<A> {
             g.used += 1;
         }
         g
+    }
+}
+
+impl<A: Aggregate> TemporalEnsembler<A> {
+    /// [`gather`](Self::gather) for `D` (> 0) the action dimension, when every candidate
+    /// chunk is finite (`None`, with `cand` overwritten, when one is not): the candidates are
+    /// the live chunks queried at or before `tau`, a prefix of the ring in query order,
+    /// copied in at most two contiguous runs of slots (the ring wraps once) with no per-row
+    /// test.
+    #[inline]
+    fn gather_finite<const D: usize>(&mut self, tau: u64) -> Option<Gathered> {
+        debug_assert!(D == self.dim);
+        // Chunks inserted ahead (query time after `tau`) are at the tail: few, at most the
+        // lookahead.
+        let mut m = self.len;
+        while m > 0 && self.slots[self.wrap(self.head + m - 1)].t_query > tau {
+            m -= 1;
+        }
+        if m == 0 {
+            return Some(Gathered::default());
+        }
+        let first = self.head;
+        let end = first + m;
+        let (run1, run2) = if end > self.capacity {
+            (first..self.capacity, 0..end - self.capacity)
+        } else {
+            (first..end, 0..0)
+        };
+        let n1 = run1.len();
+        let (q1, finite1) = self.copy_run::<D>(tau, run1, 0);
+        let (q2, finite2) = self.copy_run::<D>(tau, run2, n1);
+        (finite1 && finite2).then(|| Gathered {
+            m,
+            q: q1 + q2,
+            used: m,
+            excluded_corrupted: 0,
+            oldest: self.slots[self.head].t_query,
+            newest: self.slots[self.wrap(self.head + m - 1)].t_query,
+        })
+    }
+
+    /// Copies the row for `tau` of each chunk in the ring slots `run` (in order) to the
+    /// candidate rows from `at` on, with their corrupted flags; returns how many are
+    /// corrupted and whether every one of these chunks is finite.
+    #[inline(always)]
+    fn copy_run<const D: usize>(
+        &mut self,
+        tau: u64,
+        run: std::ops::Range<usize>,
+        at: usize,
+    ) -> (usize, bool) {
+        let (stride, width) = (self.stride, self.span * D);
+        let (large, n) = (self.large, run.len());
+        let slots = &self.slots[run.clone()];
+        let rows = self.rows[run.start * width..run.end * width].chunks_exact(width);
+        let cand = self.cand[at * stride..(at + n) * stride].chunks_exact_mut(stride);
+        let flags = &mut self.cand_corrupted[at..at + n];
+        let (mut q, mut finite) = (0, true);
+        for (((meta, chunk), dst), flag) in slots.iter().zip(rows).zip(cand).zip(flags) {
+            // `0 <= tau - t_query < span` for a live chunk queried at or before `tau`.
+            let rest = &chunk[(tau - meta.t_query) as usize * D..];
+            if large {
+                prefetch_next_row(rest, D);
+            }
+            dst[..D].copy_from_slice(&rest[..D]);
+            *flag = meta.corrupted;
+            q += usize::from(meta.corrupted);
+            finite &= meta.finite;
+        }
+        (q, finite)
     }
 }
 
@@ -667,7 +774,7 @@ impl CandidatesMut<'_> {
 }
 
 /// Counts from one gather.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 struct Gathered {
     m: usize,
     q: usize,
@@ -881,6 +988,109 @@ mod tests {
         assert_eq!(e.live_chunks(), 0);
         e.insert(0, &[2.0; 3], QueryMeta::CLEAN).unwrap();
         assert_eq!(e.action(0).unwrap().action, &[2.0]);
+    }
+
+    /// The large rings' gather (two contiguous runs, no per-row test while every chunk is
+    /// finite) gives the general gather's candidates, flags and counts exactly, at ACT-sized
+    /// rings with every specialised dimension, with the ring wrapping, chunks inserted ahead,
+    /// corrupted chunks and the odd non-finite chunk (where it must defer to the general path).
+    #[test]
+    fn large_ring_gather_matches_the_general_gather() {
+        let mut state = 0x1234_5678_9abc_def1u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let mut deferred = 0;
+        for (t_p, h, d) in [(100, 1, 14), (100, 3, 7), (60, 1, 2), (100, 2, 14)] {
+            let g = ChunkGeometry::new(t_p, 1, h).unwrap();
+            let opts = EnsemblerOptions {
+                lookahead: Some(h + 1),
+                ..Default::default()
+            };
+            let mut e = TemporalEnsembler::with_options(g, d, Aggregator::MEDIAN, opts).unwrap();
+            assert!(e.large, "t_p {t_p} d {d} is a large ring");
+            for tau in 0..(3 * t_p as u64) {
+                if tau % h as u64 == 0 {
+                    let mut chunk: Vec<f32> = (0..t_p * d)
+                        .map(|_| (next() >> 40) as f32 / 1e5 - 80.0)
+                        .collect();
+                    if next() % 40 == 0 {
+                        let at = (next() as usize) % chunk.len();
+                        chunk[at] = f32::NAN;
+                    }
+                    let meta = QueryMeta {
+                        corrupted: next() % 3 == 0,
+                    };
+                    // Every other query arrives one step ahead of its action.
+                    let t = if tau > 0 && next() % 2 == 0 {
+                        tau + 1
+                    } else {
+                        tau
+                    };
+                    if e.last_query.is_none_or(|l| t > l) {
+                        e.insert(t, &chunk, meta).unwrap();
+                    }
+                }
+                e.cursor = Some(tau);
+                e.evict_before(tau);
+                let fast = match d {
+                    2 => e.gather_finite::<2>(tau),
+                    7 => e.gather_finite::<7>(tau),
+                    _ => e.gather_finite::<14>(tau),
+                };
+                let fast_rows = e.cand[..fast.map_or(0, |g| g.used) * e.stride].to_vec();
+                let fast_flags = e.cand_corrupted[..fast.map_or(0, |g| g.used)].to_vec();
+                let slow = e.gather_any(tau);
+                match fast {
+                    Some(f) => {
+                        assert_eq!(f, slow, "t_p {t_p} d {d} tau {tau}");
+                        let rows = &e.cand[..slow.used * e.stride];
+                        for (a, b) in fast_rows.chunks(e.stride).zip(rows.chunks(e.stride)) {
+                            assert_eq!(a[..d], b[..d], "t_p {t_p} d {d} tau {tau}");
+                        }
+                        assert_eq!(fast_flags, e.cand_corrupted[..slow.used]);
+                    }
+                    None => deferred += 1,
+                }
+                assert_eq!(e.gather_large(tau), slow);
+            }
+        }
+        assert!(
+            deferred > 0,
+            "a non-finite chunk sent some steps to the general gather"
+        );
+    }
+
+    #[test]
+    fn finiteness_checks_see_every_infinity_and_nan() {
+        let finite = [
+            0.0,
+            -0.0,
+            1e-45,
+            -1e-45,
+            f32::MAX,
+            f32::MIN,
+            f32::MIN_POSITIVE,
+        ];
+        assert!(all_finite(&finite) && chunk_finite(&finite));
+        for bad in [
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            -f32::NAN,
+            f32::from_bits(0x7f80_0001),
+            f32::from_bits(0xffff_ffff),
+        ] {
+            for at in [0, 3, 39] {
+                let mut v = vec![1.5f32; 40];
+                v[at] = bad;
+                assert!(!all_finite(&v), "{bad} at {at}");
+                assert!(!chunk_finite(&v), "{bad} at {at}");
+            }
+        }
     }
 
     #[test]

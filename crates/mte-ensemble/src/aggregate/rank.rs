@@ -58,7 +58,7 @@ pub(super) fn median(c: &Candidates<'_>, tie: MedianTie, ws: &mut Workspace, out
     } else if select::supported(stride) {
         // Beyond the networks: select in SIMD lanes, all coordinates at once.
         let (lower, upper) = ws.central.split_at_mut(stride);
-        select::central_pairs_lanes(values, stride, &mut ws.keys, lower, upper);
+        select::central_pairs_lanes(values, stride, d, &mut ws.keys, lower, upper);
         write_median(tie, &lower[..d], &upper[..d], out);
     } else {
         central_pairs(c, first, ws, |j, lo, hi| {

@@ -30,20 +30,23 @@ pub(super) fn supported(stride: usize) -> bool {
 }
 
 /// The order statistics of ranks `(n - 1) / 2` and `n / 2` (0-based) of every lane of the
-/// `n = values.len() / stride` rows, written to `lower[..stride]` and `upper[..stride]`.
-/// `keys` is scratch of at least `values.len()`. The stride must be [`supported`].
+/// `n = values.len() / stride` rows, written to `lower[..stride]` and `upper[..stride]`;
+/// exact in the first `lanes` lanes (the action's coordinates), while the padding lanes
+/// after them may hold any key of their lane. `keys` is scratch of at least `values.len()`.
+/// The stride must be [`supported`].
 pub(super) fn central_pairs_lanes(
     values: &[f32],
     stride: usize,
+    lanes: usize,
     keys: &mut [i32],
     lower: &mut [f32],
     upper: &mut [f32],
 ) {
     match stride {
-        4 => central::<4>(values, keys, lower, upper),
-        8 => central::<8>(values, keys, lower, upper),
-        12 => central::<12>(values, keys, lower, upper),
-        _ => central::<16>(values, keys, lower, upper),
+        4 => central::<4>(values, lanes, keys, lower, upper),
+        8 => central::<8>(values, lanes, keys, lower, upper),
+        12 => central::<12>(values, lanes, keys, lower, upper),
+        _ => central::<16>(values, lanes, keys, lower, upper),
     }
 }
 
@@ -60,7 +63,13 @@ fn unsigned_key(k: i32) -> u32 {
     k as u32 ^ 0x8000_0000
 }
 
-fn central<const S: usize>(values: &[f32], keys: &mut [i32], lower: &mut [f32], upper: &mut [f32]) {
+fn central<const S: usize>(
+    values: &[f32],
+    lanes: usize,
+    keys: &mut [i32],
+    lower: &mut [f32],
+    upper: &mut [f32],
+) {
     let (rows, _) = values.as_chunks::<S>();
     let n = rows.len();
     let (keys, _) = keys[..n * S].as_chunks_mut::<S>();
@@ -71,26 +80,29 @@ fn central<const S: usize>(values: &[f32], keys: &mut [i32], lower: &mut [f32], 
     }
     let (lo, hi) = ((n - 1) / 2, n / 2);
     let below = (lo != hi).then_some(lo as u32);
-    let (top, bottom) = select_dispatch::<S>(keys, hi as u32, below);
+    let (top, bottom) = select_dispatch::<S>(keys, hi as u32, below, lanes);
     for l in 0..S {
         upper[l] = unkey(top[l]);
         lower[l] = unkey(bottom[l]);
     }
 }
 
-/// The `u32` keys of rank `rank` (0-based) in every lane of the signed-key rows, and of rank
-/// `lower` when given (else the same keys again), on the best SIMD level the CPU has.
+/// The `u32` keys of rank `rank` (0-based) in the first `lanes` lanes of the signed-key
+/// rows, and of rank `lower` when given (else the same keys again), on the best SIMD level
+/// the CPU has.
 fn select_dispatch<const S: usize>(
     keys: &[[i32; S]],
     rank: u32,
     lower: Option<u32>,
+    lanes: usize,
 ) -> ([u32; S], [u32; S]) {
     #[cfg(target_arch = "x86_64")]
     {
-        if let Some(out) = simd::select(keys, rank, lower) {
+        if let Some(out) = simd::select(keys, rank, lower, lanes) {
             return out;
         }
     }
+    let _ = lanes;
     select_scalar(keys, rank, lower)
 }
 
@@ -167,19 +179,22 @@ mod simd {
         keys: &[[i32; S]],
         rank: u32,
         lower: Option<u32>,
+        lanes: usize,
     ) -> Option<Pair<S>> {
         let level = [Level::Avx512, Level::Avx2, Level::Sse2]
             .into_iter()
             .find(|l| l.serves(S))?;
-        Some(select_on(level, keys, rank, lower))
+        Some(select_on(level, keys, rank, lower, lanes))
     }
 
-    /// The selection on `level`, which must [`Level::serves`] rows of `S` lanes.
+    /// The selection on `level`, which must [`Level::serves`] rows of `S` lanes; exact in
+    /// the first `lanes` lanes.
     pub(super) fn select_on<const S: usize>(
         level: Level,
         keys: &[[i32; S]],
         rank: u32,
         lower: Option<u32>,
+        lanes: usize,
     ) -> Pair<S> {
         assert!(level.serves(S), "{level:?} cannot serve rows of {S} lanes");
         let (mut top, mut bottom) = ([0u32; S], [0u32; S]);
@@ -188,7 +203,14 @@ mod simd {
         match level {
             // SAFETY (all three): `serves` checked that the CPU has the level's features and
             // that the row width fits the kernel.
-            Level::Avx512 => unsafe { select_avx512(flat, rank, lo, &mut top, &mut bottom) },
+            Level::Avx512 => unsafe {
+                let active = if lanes >= 16 {
+                    u16::MAX
+                } else {
+                    (1u16 << lanes) - 1
+                };
+                select_avx512(flat, rank, lo, active, &mut top, &mut bottom)
+            },
             Level::Avx2 => unsafe { select_avx2(flat, S, rank, lo, &mut top, &mut bottom) },
             Level::Sse2 => unsafe { select_sse2(flat, S, rank, lo, &mut top, &mut bottom) },
         }
@@ -198,13 +220,27 @@ mod simd {
         (top, bottom)
     }
 
-    /// Rows of 16 lanes in one AVX-512 register each.
+    /// Rows of 16 lanes in one AVX-512 register each. The counting passes stop early once
+    /// every lane of `active` has narrowed its bucket (the keys that share the prefix built
+    /// so far) to a single key, which is then the answer: one pass finds it as the smallest
+    /// key not below the prefix. At ACT's `M = 100` that is typically after about half of
+    /// the 32 passes; ties across the centre run all 32.
     #[target_feature(enable = "avx512f")]
-    fn select_avx512(keys: &[i32], rank: u32, lo: i32, top: &mut [u32], bottom: &mut [u32]) {
+    fn select_avx512(
+        keys: &[i32],
+        rank: u32,
+        lo: i32,
+        active: u16,
+        top: &mut [u32],
+        bottom: &mut [u32],
+    ) {
         let sign = _mm512_set1_epi32(i32::MIN);
         let one = _mm512_set1_epi32(1);
         let limit = _mm512_set1_epi32(rank as i32);
         let mut prefix = _mm512_setzero_si512();
+        // Keys below the prefix, and below the prefix plus the current bucket's width.
+        let mut below = _mm512_setzero_si512();
+        let mut upto = _mm512_set1_epi32((keys.len() / 16) as i32);
         for bit in (0..32).rev() {
             let trial = _mm512_or_si512(prefix, _mm512_set1_epi32((1u32 << bit) as i32));
             let t = _mm512_xor_si512(trial, sign);
@@ -226,7 +262,15 @@ mod simd {
             }
             let count =
                 _mm512_add_epi32(_mm512_add_epi32(c[0], c[1]), _mm512_add_epi32(c[2], c[3]));
-            prefix = _mm512_mask_mov_epi32(prefix, _mm512_cmple_epi32_mask(count, limit), trial);
+            let accept = _mm512_cmple_epi32_mask(count, limit);
+            prefix = _mm512_mask_mov_epi32(prefix, accept, trial);
+            below = _mm512_mask_mov_epi32(below, accept, count);
+            upto = _mm512_mask_mov_epi32(count, accept, upto);
+            let size = _mm512_sub_epi32(upto, below);
+            if bit > 0 && _mm512_mask_cmpneq_epi32_mask(active, size, one) == 0 {
+                prefix = _mm512_xor_si512(smallest_from_avx512(keys, prefix), sign);
+                break;
+            }
         }
         let t = _mm512_xor_si512(prefix, sign);
         let (mut count, mut largest) = (_mm512_setzero_si512(), sign);
@@ -244,6 +288,21 @@ mod simd {
             _mm512_storeu_si512(top.as_mut_ptr().cast(), prefix);
             _mm512_storeu_si512(bottom.as_mut_ptr().cast(), low);
         }
+    }
+
+    /// Per lane, the smallest signed key not below the unsigned `prefix` (`i32::MAX` where
+    /// there is none).
+    #[target_feature(enable = "avx512f")]
+    fn smallest_from_avx512(keys: &[i32], prefix: __m512i) -> __m512i {
+        let t = _mm512_xor_si512(prefix, _mm512_set1_epi32(i32::MIN));
+        let mut smallest = _mm512_set1_epi32(i32::MAX);
+        for row in keys.chunks_exact(16) {
+            // SAFETY: `row` holds 16 readable i32; the load is unaligned.
+            let k = unsafe { _mm512_loadu_si512(row.as_ptr().cast()) };
+            let m = _mm512_cmpge_epi32_mask(k, t);
+            smallest = _mm512_mask_min_epi32(smallest, m, smallest, k);
+        }
+        smallest
     }
 
     /// Rows of `s` lanes, a multiple of 8 up to 16, in AVX2 registers.
@@ -426,7 +485,7 @@ mod tests {
                 let want = select_scalar(&keys, hi, Some(lo));
                 for level in [simd::Level::Avx512, simd::Level::Avx2, simd::Level::Sse2] {
                     if level.serves(S) {
-                        let got = simd::select_on(level, &keys, hi, Some(lo));
+                        let got = simd::select_on(level, &keys, hi, Some(lo), S);
                         assert_eq!(got, want, "{level:?} S {S} n {n}");
                         checked += 1;
                     }
@@ -441,6 +500,44 @@ mod tests {
             + check::<16>(&mut state);
         // SSE2 serves every width on every x86_64 CPU.
         assert!(checked >= 40, "only {checked} kernel runs checked");
+    }
+
+    /// Rows of 16 lanes whose last 2 lanes are constant padding (as the ensembler pads 14
+    /// coordinates): the coordinates' lanes stop early on distinct keys, and every level
+    /// still gives the portable selection's keys there, bit for bit; also with ties at the
+    /// centre in one lane, which runs every pass.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn early_exit_with_padding_lanes_matches_the_portable_selection() {
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for n in [1usize, 2, 7, 8, 50, 99, 100] {
+            for tie_lane in [None, Some(3)] {
+                let keys: Vec<[i32; 16]> = (0..n)
+                    .map(|i| {
+                        std::array::from_fn(|l| match (l, tie_lane) {
+                            (14 | 15, _) => 0,
+                            (l, Some(t)) if l == t => (i % 3) as i32,
+                            _ => signed_key(f32::from_bits(next() as u32 & 0xbfff_ffff)),
+                        })
+                    })
+                    .collect();
+                let (lo, hi) = (((n - 1) / 2) as u32, (n / 2) as u32);
+                let want = select_scalar(&keys, hi, Some(lo));
+                for level in [simd::Level::Avx512, simd::Level::Avx2, simd::Level::Sse2] {
+                    if level.serves(16) {
+                        let got = simd::select_on(level, &keys, hi, Some(lo), 14);
+                        assert_eq!(got.0[..14], want.0[..14], "{level:?} n {n} top");
+                        assert_eq!(got.1[..14], want.1[..14], "{level:?} n {n} bottom");
+                    }
+                }
+            }
+        }
     }
 
     #[test]
@@ -460,7 +557,7 @@ mod tests {
                 }
             }
             let (mut lower, mut upper, mut keys) = ([0.0; 4], [0.0; 4], vec![0i32; n * 4]);
-            central_pairs_lanes(&values, 4, &mut keys, &mut lower, &mut upper);
+            central_pairs_lanes(&values, 4, 4, &mut keys, &mut lower, &mut upper);
             for (l, col) in cols.iter().enumerate() {
                 let mut sorted = col[..n].to_vec();
                 sorted.sort_by(f32::total_cmp);

@@ -211,7 +211,7 @@ mod simd {
                 };
                 select_avx512(flat, rank, lo, active, &mut top, &mut bottom)
             },
-            Level::Avx2 => unsafe { select_avx2(flat, S, rank, lo, &mut top, &mut bottom) },
+            Level::Avx2 => unsafe { select_avx2(flat, S, rank, lo, lanes, &mut top, &mut bottom) },
             Level::Sse2 => unsafe { select_sse2(flat, S, rank, lo, &mut top, &mut bottom) },
         }
         if lower.is_none() {
@@ -305,20 +305,51 @@ mod simd {
         smallest
     }
 
+    /// Per lane of the `j`-th 8-lane group of rows `s` wide, the smallest signed key not
+    /// below the unsigned `prefix` (`i32::MAX` where there is none).
+    #[target_feature(enable = "avx2")]
+    fn smallest_from_avx2(keys: &[i32], s: usize, j: usize, prefix: __m256i) -> __m256i {
+        let t = _mm256_xor_si256(prefix, _mm256_set1_epi32(i32::MIN));
+        let none = _mm256_set1_epi32(i32::MAX);
+        let mut smallest = none;
+        for row in keys.chunks_exact(s) {
+            // SAFETY: `row` holds `s >= 8 (j + 1)` readable i32; the load is unaligned.
+            let k = unsafe { _mm256_loadu_si256(row[8 * j..].as_ptr().cast()) };
+            let below = _mm256_cmpgt_epi32(t, k);
+            smallest = _mm256_min_epi32(smallest, _mm256_blendv_epi8(k, none, below));
+        }
+        smallest
+    }
+
     /// Rows of `s` lanes, a multiple of 8 up to 16, in AVX2 registers.
     #[target_feature(enable = "avx2")]
+    #[allow(clippy::too_many_arguments)]
     fn select_avx2(
         keys: &[i32],
         s: usize,
         rank: u32,
         lo: i32,
+        lanes: usize,
         top: &mut [u32],
         bottom: &mut [u32],
     ) {
         let v = s / 8;
         let sign = _mm256_set1_epi32(i32::MIN);
         let limit = _mm256_set1_epi32(rank as i32 + 1);
+        let one = _mm256_set1_epi32(1);
         let mut prefix = [_mm256_setzero_si256(); 2];
+        // As in `select_avx512`: keys below the prefix and below the bucket's end, to stop
+        // once every coordinate lane's bucket holds one key; padding lanes never hold it up.
+        let mut below = [_mm256_setzero_si256(); 2];
+        let mut upto = [_mm256_set1_epi32((keys.len() / s) as i32); 2];
+        let mut padding = [_mm256_setzero_si256(); 2];
+        for (j, p) in padding.iter_mut().enumerate() {
+            let lane = _mm256_add_epi32(
+                _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),
+                _mm256_set1_epi32(8 * j as i32),
+            );
+            *p = _mm256_cmpgt_epi32(lane, _mm256_set1_epi32(lanes as i32 - 1));
+        }
         for bit in (0..32).rev() {
             let b = _mm256_set1_epi32((1u32 << bit) as i32);
             let mut t = [_mm256_setzero_si256(); 2];
@@ -344,10 +375,22 @@ mod simd {
                 let k = unsafe { _mm256_loadu_si256(rest[8 * j..].as_ptr().cast()) };
                 c[0][j] = _mm256_sub_epi32(c[0][j], _mm256_cmpgt_epi32(t[j], k));
             }
+            let mut single = true;
             for j in 0..v {
                 let count = _mm256_add_epi32(c[0][j], c[1][j]);
                 let keep = _mm256_cmpgt_epi32(limit, count);
                 prefix[j] = _mm256_or_si256(prefix[j], _mm256_and_si256(keep, b));
+                below[j] = _mm256_blendv_epi8(below[j], count, keep);
+                upto[j] = _mm256_blendv_epi8(count, upto[j], keep);
+                let size = _mm256_sub_epi32(upto[j], below[j]);
+                let done = _mm256_or_si256(_mm256_cmpeq_epi32(size, one), padding[j]);
+                single &= _mm256_movemask_epi8(done) == -1;
+            }
+            if bit > 0 && single {
+                for (j, p) in prefix.iter_mut().enumerate().take(v) {
+                    *p = _mm256_xor_si256(smallest_from_avx2(keys, s, j, *p), sign);
+                }
+                break;
             }
         }
         let lo = _mm256_set1_epi32(lo);

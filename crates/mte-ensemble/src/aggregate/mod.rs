@@ -192,6 +192,18 @@ impl Workspace {
         }
     }
 
+    /// The oldest-heavy exponential weights `exp(-|m| i)` of `n` candidates, left in
+    /// `decay[..n]` (nothing copied), and their sum as [`exp_weights`](Self::exp_weights)
+    /// returns it.
+    fn decay_weights(&mut self, m: f64, n: usize) -> f64 {
+        self.ensure_decay(m);
+        let known = &mut self.decay_totals[0][n];
+        if known.is_nan() {
+            *known = self.decay[..n].iter().fold(0.0, |t, &x| t + x);
+        }
+        *known
+    }
+
     /// Fills `score[..n]` with exponential weights for `n` oldest-first candidates:
     /// `exp(-|m| i)` when `oldest_heavy`, else `exp(-|m| (n - 1 - i))`, and returns their sum
     /// taken in candidate order from 0 (remembered for the same `m`, `n` and order).

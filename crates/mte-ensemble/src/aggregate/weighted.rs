@@ -5,16 +5,16 @@ use super::{Candidates, WeightOrder, Workspace};
 /// `out = sum_i w_i x_i / total` with `w = ws.score[..n]`, accumulated in f64, row by row in
 /// candidate order (so every path gives the same bits). `total` is `sum_i w_i` summed in
 /// candidate order from 0, which the callers know without summing at every step.
-fn weighted_mean(c: &Candidates<'_>, ws: &mut Workspace, total: f64, out: &mut [f32]) {
-    let (d, n) = (c.dim(), c.len());
-    let w = &ws.score[..n];
+fn weighted_mean(c: &Candidates<'_>, w: &[f64], acc: &mut [f64], total: f64, out: &mut [f32]) {
+    let d = c.dim();
+    let w = &w[..c.len()];
     debug_assert_eq!(total, w.iter().fold(0.0, |t, &x| t + x));
     match c.stride() {
-        4 => weighted_rows::<4>(c.values(), w, &mut ws.acc),
-        8 => weighted_rows::<8>(c.values(), w, &mut ws.acc),
-        16 => weighted_rows::<16>(c.values(), w, &mut ws.acc),
+        4 => weighted_rows::<4>(c.values(), w, acc),
+        8 => weighted_rows::<8>(c.values(), w, acc),
+        16 => weighted_rows::<16>(c.values(), w, acc),
         _ => {
-            let acc = &mut ws.acc[..d];
+            let acc = &mut acc[..d];
             acc.fill(0.0);
             for (i, &wi) in w.iter().enumerate() {
                 for (a, &x) in acc.iter_mut().zip(c.row(i)) {
@@ -23,7 +23,7 @@ fn weighted_mean(c: &Candidates<'_>, ws: &mut Workspace, total: f64, out: &mut [
             }
         }
     }
-    for (o, a) in out.iter_mut().zip(&ws.acc[..d]) {
+    for (o, a) in out.iter_mut().zip(&acc[..d]) {
         *o = (a / total) as f32;
     }
 }
@@ -58,15 +58,22 @@ pub(super) fn exp_weighted_mean(
     out: &mut [f32],
 ) {
     let oldest_heavy = (order == WeightOrder::OldestFirst) == (m >= 0.0);
-    let total = ws.exp_weights(m, c.len(), oldest_heavy);
-    weighted_mean(c, ws, total, out);
+    let n = c.len();
+    // Oldest-heavy weights are read where they are cached, not copied at every step.
+    let total = if oldest_heavy {
+        ws.decay_weights(m, n)
+    } else {
+        ws.exp_weights(m, n, false)
+    };
+    let w = if oldest_heavy { &ws.decay } else { &ws.score };
+    weighted_mean(c, w, &mut ws.acc, total, out);
 }
 
 /// Uniform mean.
 pub(super) fn mean(c: &Candidates<'_>, ws: &mut Workspace, out: &mut [f32]) {
     ws.score[..c.len()].fill(1.0);
     // A sum of n ones in f64 is exactly n (n is far below 2^53).
-    weighted_mean(c, ws, c.len() as f64, out);
+    weighted_mean(c, &ws.score, &mut ws.acc, c.len() as f64, out);
 }
 
 #[cfg(test)]

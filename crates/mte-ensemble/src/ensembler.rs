@@ -212,7 +212,9 @@ fn chunk_finite(values: &[f32]) -> bool {
 /// walks the live chunks oldest first and copies row `tau - t` of each into a candidate
 /// matrix whose rows are padded to 4 lanes, so the median's comparator network runs on
 /// packed SIMD registers. Rows of 1 to 8, 10 and 14 coordinates are copied by code
-/// specialised for that width.
+/// specialised for that width. A ring too large for L1 (ACT's `T_p = 100`) copies the
+/// candidates of 2, 7 or 14 coordinates in at most two contiguous runs of slots, without a
+/// per-row finiteness test while every candidate chunk is finite.
 #[derive(Debug, Clone)]
 pub struct TemporalEnsembler<A: Aggregate = Aggregator> {
     geometry: ChunkGeometry,

@@ -5,10 +5,13 @@
 //! the coordinates sit in SIMD lanes. The values are mapped to unsigned keys whose integer
 //! order is [`f32::total_cmp`]'s order, and the `k`-th smallest key of every lane is built
 //! bit by bit from the top (a radix select): at each bit, one pass over the rows counts, per
-//! lane, the keys below the candidate prefix. That is 32 branch-free compare-and-count passes
-//! over `M` rows, whatever the data, in the lanes the CPU has (AVX-512, AVX2, NEON or the
-//! baseline, chosen at run time). The result is the same value `select_nth_unstable_by`
-//! with `total_cmp` returns, bit for bit.
+//! lane, the keys below the candidate prefix. That is at most 32 branch-free
+//! compare-and-count passes over `M` rows, in the lanes the CPU has (AVX-512, AVX2, SSE2 or
+//! the portable loop, chosen at run time). The AVX-512 and AVX2 kernels stop early: once the
+//! bucket of keys sharing the prefix holds a single key in every coordinate's lane (padding
+//! lanes aside), one more pass reads those keys. At ACT's `M = 100` that halves the passes;
+//! ties at the centre run all 32. The result is the same value `select_nth_unstable_by` with
+//! `total_cmp` returns, bit for bit, whichever way the kernel finishes.
 
 /// Maps `x` to a key whose unsigned order is the order of [`f32::total_cmp`].
 #[inline(always)]
@@ -143,8 +146,10 @@ fn select_scalar<const S: usize>(
 /// it is a multiple of 8, SSE2 (every x86_64 CPU) otherwise. The compiler, left to itself,
 /// vectorises across rows with gathers, which is slower than scalar code.
 ///
-/// Each kernel finds the key of rank `rank` by 32 counting passes, then, when asked, the key
-/// of rank `lower` by one more pass that counts the keys below it and keeps their maximum.
+/// Each kernel finds the key of rank `rank` by up to 32 counting passes (AVX-512 and AVX2
+/// stop once every coordinate lane's bucket holds one key, and read it in one pass), then,
+/// when asked, the key of rank `lower` by one more pass that counts the keys below it and
+/// keeps their maximum.
 #[cfg(target_arch = "x86_64")]
 #[allow(unsafe_code)]
 mod simd {

@@ -998,13 +998,9 @@ mod tests {
     /// corrupted chunks and the odd non-finite chunk (where it must defer to the general path).
     #[test]
     fn large_ring_gather_matches_the_general_gather() {
-        let mut state = 0x1234_5678_9abc_def1u64;
-        let mut next = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            state
-        };
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0x1234_5678_9abc_def1);
+        let mut next = move || rng.random::<u64>();
         let mut deferred = 0;
         for (t_p, h, d) in [(100, 1, 14), (100, 3, 7), (60, 1, 2), (100, 2, 14)] {
             let g = ChunkGeometry::new(t_p, 1, h).unwrap();

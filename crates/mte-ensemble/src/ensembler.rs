@@ -610,9 +610,7 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         }
         g
     }
-}
 
-impl<A: Aggregate> TemporalEnsembler<A> {
     /// [`gather`](Self::gather) for `D` (> 0) the action dimension, when every candidate
     /// chunk is finite (`None`, with `cand` overwritten, when one is not): the candidates are
     /// the live chunks queried at or before `tau`, a prefix of the ring in query order,
@@ -660,8 +658,7 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         run: std::ops::Range<usize>,
         at: usize,
     ) -> (usize, bool) {
-        let (stride, width) = (self.stride, self.span * D);
-        let (large, n) = (self.large, run.len());
+        let (stride, width, n) = (self.stride, self.span * D, run.len());
         let slots = &self.slots[run.clone()];
         let rows = self.rows[run.start * width..run.end * width].chunks_exact(width);
         let cand = self.cand[at * stride..(at + n) * stride].chunks_exact_mut(stride);
@@ -670,9 +667,8 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         for (((meta, chunk), dst), flag) in slots.iter().zip(rows).zip(cand).zip(flags) {
             // `0 <= tau - t_query < span` for a live chunk queried at or before `tau`.
             let rest = &chunk[(tau - meta.t_query) as usize * D..];
-            if large {
-                prefetch_next_row(rest, D);
-            }
+            // Only large rings come here: their rows are not in L1 (see `gather`).
+            prefetch_next_row(rest, D);
             dst[..D].copy_from_slice(&rest[..D]);
             *flag = meta.corrupted;
             q += usize::from(meta.corrupted);

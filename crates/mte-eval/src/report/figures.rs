@@ -186,7 +186,7 @@ fn recovered_plots(
                         continue;
                     }
                     let x = axis_x(c.spec, by_budget);
-                    if let Some(p) = recovered_point(cells, ci, row_of(ci), baseline, arm, x)? {
+                    if let Some(p) = recovered_point(cells, ci, row_of(ci), baseline, arm, x) {
                         pts.push(p);
                     }
                 }
@@ -230,9 +230,11 @@ fn recovered_plots(
 }
 
 /// The recovered fraction of `arm` against `baseline` on cell `ci` at `x`, where the main
-/// table's denominator is significantly above zero: on the seeds that ran the clean cell,
-/// the corrupted baseline and the arm, with its paired jackknife standard error (the main
-/// table's value where the policy has no clean cell to pair with).
+/// table's denominator is significantly above zero: the report's own rule
+/// ([`super::recovered`]) on the seeds that ran the clean cell, the corrupted baseline and
+/// the arm, with its paired jackknife standard error (no error bar where the jackknife is
+/// undefined), so a plotted point is always the value a table prints. No point without a
+/// clean cell to pair with.
 fn recovered_point(
     cells: &[CellData<'_>],
     ci: usize,
@@ -240,37 +242,24 @@ fn recovered_point(
     baseline: &str,
     arm: &str,
     x: f64,
-) -> Result<Option<Point>, ReportError> {
-    let c = &cells[ci];
-    let what = format!("cell `{}`, `{arm}` vs `{baseline}`", c.spec.id);
-    let cmp = compare(c.episodes(baseline), c.episodes(arm), arm, &what, c.mcnemar)?;
-    let clean_mean = row
-        .filter(|r| {
-            r.recovered
-                .denominator
-                .is_some_and(|d| d.coverage_meaningful())
-        })
-        .and_then(|r| r.clean.as_ref())
-        .map(|r| r.coverage.mean);
-    let y = match (clean_mean, cmp.baseline, cmp.other) {
-        (Some(cl), Some(b), Some(o)) => recovered_fraction(cl, b.mean, o.mean).ok(),
-        _ => None,
-    };
-    let Some(y) = y.filter(|y| y.is_finite()) else {
-        return Ok(None);
-    };
-    let paired = clean_of(cells, ci).and_then(|cj| {
-        paired_fraction([
-            cells[cj].episodes(baseline),
-            c.episodes(baseline),
-            c.episodes(arm),
-        ])
-    });
-    let (y, err) = match paired {
-        Some((y, se)) => (y, Some(se)),
-        None => (y, None),
-    };
-    Ok(Some(Point { x, y, err }))
+) -> Option<Point> {
+    let (row, cj) = (row?, clean_of(cells, ci)?);
+    let (c, clean) = (&cells[ci], &cells[cj]);
+    let rec = super::recovered(
+        super::RecoveryEpisodes {
+            clean: clean.episodes(baseline),
+            base: c.episodes(baseline),
+            other: c.episodes(arm),
+            other_clean: clean.episodes(arm),
+        },
+        row.recovered.denominator,
+    );
+    let y = rec.coverage.filter(|y| y.is_finite())?;
+    Some(Point {
+        x,
+        y,
+        err: rec.coverage_se,
+    })
 }
 
 /// A cell's position on a recovered-fraction plot: its attack budget, or its `q` when the
@@ -321,16 +310,6 @@ fn defended_series(
         label: format!("{} ({})", policy_label(&d.defended), ctx.baseline),
         points,
     })
-}
-
-/// The recovered fraction and its delete-one jackknife standard error, both over the seeds
-/// that ran all three of `[clean, corrupted baseline, other]` (max coverage per seed). The
-/// point uses the clean cell's values on those seeds only, so a partial corrupted cell (a run
-/// still growing) is not compared with the clean mean of seeds it has not run.
-fn paired_fraction(eps: [&[&EpisodeRecord]; 3]) -> Option<(f64, f64)> {
-    let triples = same_seeds(eps);
-    let column = |i: usize| -> Vec<f64> { triples.iter().map(|t| t[i].max_coverage).collect() };
-    mte_stats::recovered_fraction_jackknife(&column(0), &column(1), &column(2)).ok()
 }
 
 /// The schedule part of a corruption's text form (`burst-q2`).

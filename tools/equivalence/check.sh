@@ -18,13 +18,14 @@ cp "$root/target/equivalence-base/release/mte" "$work/mte-base"
 (cd "$root" && cargo build --release --locked -q -p mte-cli)
 run() { # binary, output directory
     "$1" --no-progress -q sweep "$root/tools/equivalence/grid.toml" --out "$2/grid" || true
+    "$1" --no-progress -q sweep "$root/tools/equivalence/grid_image.toml" --out "$2/grid_image" || true
     "$1" --no-progress -q demo --episodes 2 --q 0,2 --out "$2/demo" \
         --policy "$root/assets/policies/pusht_keypoints_cpu" >/dev/null || true
 }
 run "$work/mte-base" "$work/before"
 run "$root/target/release/mte" "$work/after"
 status=0
-for part in grid demo; do
+for part in grid grid_image demo; do
     echo "== $part"
     python3 "$root/tools/equivalence/compare.py" "$work/before/$part" "$work/after/$part" || status=1
 done

@@ -6,6 +6,8 @@
 //! `RAYON_NUM_THREADS=1 cargo bench -p mte-policy --bench unet`
 //!
 //! Also: one PGD iteration, and the image encoder's forward + backward at training size.
+//! Every evaluation benchmark holds its weights as constants, as a loaded checkpoint does
+//! (`frozen_policy`); the training step's are variables.
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
@@ -45,9 +47,26 @@ fn policy(preset: &str) -> (DiffusionPolicy, VarMap) {
     (DiffusionPolicy::new(c, stats(), vb).expect("policy"), vm)
 }
 
+/// The policy of `preset` with its weights as constants, as a loaded checkpoint holds them:
+/// an attack's backward pass then computes no weight gradients (the PyTorch peer freezes its
+/// parameters the same way).
+fn frozen_policy(preset: &str) -> DiffusionPolicy {
+    let (p, vm) = policy(preset);
+    let c = p.config().clone();
+    let tensors: std::collections::HashMap<String, Tensor> = vm
+        .data()
+        .lock()
+        .expect("vars")
+        .iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().detach()))
+        .collect();
+    let vb = VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu);
+    DiffusionPolicy::new(c, stats(), vb).expect("frozen policy")
+}
+
 #[divan::bench(args = ["paper", "cpu-image", "cpu-keypoints"], sample_count = 10)]
 fn unet_forward(bencher: divan::Bencher, preset: &str) {
-    let (p, _vm) = policy(preset);
+    let p = frozen_policy(preset);
     let g = if preset == "cpu-keypoints" {
         2 * 18
     } else {
@@ -65,7 +84,7 @@ fn unet_forward(bencher: divan::Bencher, preset: &str) {
 
 #[divan::bench(args = ["paper", "cpu-image", "cpu-keypoints"], sample_count = 3)]
 fn chunk(bencher: divan::Bencher, preset: &str) {
-    let (p, _vm) = policy(preset);
+    let p = frozen_policy(preset);
     let hist = history(preset);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     bencher.bench_local(|| p.predict(&hist, &mut rng).expect("chunk"));
@@ -76,7 +95,7 @@ fn chunk(bencher: divan::Bencher, preset: &str) {
 #[divan::bench(args = ["cpu-image", "cpu-keypoints"], sample_count = 3)]
 fn chunks_batch_32(bencher: divan::Bencher, preset: &str) {
     use mte_policy::{ChunkPolicy, Query};
-    let (p, _vm) = policy(preset);
+    let p = frozen_policy(preset);
     let hist = history(preset);
     let mut rngs: Vec<rand_chacha::ChaCha8Rng> = (0..32)
         .map(rand_chacha::ChaCha8Rng::seed_from_u64)
@@ -110,11 +129,12 @@ fn unet_train_step(bencher: divan::Bencher) {
 }
 
 /// One PGD iteration (forward + backward of the loss with respect to the observation, 4
-/// diffusion timesteps per iteration, the attack's default) for the `cpu` presets: the
-/// attack's cost is this times its budget, per attacked query.
+/// diffusion timesteps per iteration, the attack's default) for the `cpu` presets, weights
+/// constant as in a loaded checkpoint: the attack's cost is this times its budget, per
+/// attacked query.
 #[divan::bench(args = ["cpu-image", "cpu-keypoints"], sample_count = 5)]
 fn pgd_iteration(bencher: divan::Bencher, preset: &str) {
-    let (p, _vm) = policy(preset);
+    let p = frozen_policy(preset);
     let hist = history(preset);
     let x0 = Tensor::randn(0f32, 0.5, (1, 16, 2), &Device::Cpu).expect("x0");
     let cfg = mte_policy::PgdConfig {
@@ -129,7 +149,7 @@ fn pgd_iteration(bencher: divan::Bencher, preset: &str) {
 /// divide by 16 for the time per attacked query, against `pgd_iteration` at batch 1.
 #[divan::bench(args = ["cpu-image", "cpu-keypoints"], sample_count = 3)]
 fn pgd_iteration_batch_16(bencher: divan::Bencher, preset: &str) {
-    let (p, _vm) = policy(preset);
+    let p = frozen_policy(preset);
     let hist = history(preset);
     let clean = p.obs_batch(&vec![hist.as_slice(); 16]).expect("batch");
     let x0 = Tensor::randn(0f32, 0.5, (16, 16, 2), &Device::Cpu).expect("x0");

@@ -8,9 +8,10 @@
 //!
 //! The backbone's width is a parameter (`vision_backbone_width`: 64 is torchvision's
 //! ResNet-18, the `cpu` preset uses 16). Convolutions, GroupNorm and the stem's max pool run
-//! on mte's fused CPU kernels ([`crate::kernels`]), which have fast backward passes.
+//! on mte's fused CPU kernels ([`crate::kernels`]), which have fast backward passes; so do
+//! the ReLUs (the same bits as candle's).
 
-use crate::kernels::{Conv2d, GroupNorm, max_pool_3x3_s2};
+use crate::kernels::{Conv2d, GroupNorm, max_pool_3x3_s2, relu};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
@@ -63,16 +64,13 @@ impl BasicBlock {
     }
 
     fn forward(&self, x: &Tensor, products: Products) -> Result<Tensor> {
-        let out = self
-            .bn1
-            .forward(&self.conv1.forward(x, products)?)?
-            .relu()?;
+        let out = relu(&self.bn1.forward(&self.conv1.forward(x, products)?)?)?;
         let out = self.bn2.forward(&self.conv2.forward(&out, products)?)?;
         let id = match &self.downsample {
             Some((c, n)) => n.forward(&c.forward(x, products)?)?,
             None => x.clone(),
         };
-        (out + id)?.relu()
+        relu(&(out + id)?)
     }
 }
 
@@ -168,10 +166,7 @@ impl RgbEncoder {
     /// The backbone's activation after the stem (conv, norm, ReLU, max pool) and after each
     /// of the four layers, for a cropped batch.
     pub fn backbone_stages(&self, x: &Tensor, products: Products) -> Result<Vec<Tensor>> {
-        let h = self
-            .bn1
-            .forward(&self.conv1.forward(x, products)?)?
-            .relu()?;
+        let h = relu(&self.bn1.forward(&self.conv1.forward(x, products)?)?)?;
         // Max pool 3x3, stride 2, padding 1: after ReLU every value is >= 0, so zero padding
         // is equivalent to torch's -inf padding.
         let mut h = max_pool_3x3_s2(&h)?;
@@ -200,10 +195,11 @@ impl RgbEncoder {
         let att = candle_nn::ops::softmax(&f.reshape((b, k, fh * fw))?, candle_core::D::Minus1)?;
         let grid = pos_grid(fh, fw, x.device())?.to_dtype(f.dtype())?;
         let keypoints = crate::kernels::right_shared(&att, &grid, products)?;
-        let feature = self
-            .out
-            .forward(&keypoints.reshape((b, k * 2))?, products)?
-            .relu()?;
+        let feature = relu(
+            &self
+                .out
+                .forward(&keypoints.reshape((b, k * 2))?, products)?,
+        )?;
         Ok(EncoderParts {
             feature_map: h,
             keypoints,

@@ -53,6 +53,18 @@ impl Conv1dGemm {
 
     /// `(B, C_in, T)` -> `(B, C_out, T_out)`.
     pub fn forward(&self, x: &Tensor, products: Products) -> Result<Tensor> {
+        if products == Products::PerSample
+            && crate::kernels::constant_weights(x, &self.weight, &self.bias)
+        {
+            // The same bits in one graph node (`kernels::conv1d`).
+            return crate::kernels::conv1d_constant(
+                x,
+                &self.weight,
+                &self.bias,
+                self.stride,
+                self.pad,
+            );
+        }
         let (b, c, t) = x.dims3()?;
         let (cout, _, k) = self.weight.dims3()?;
         let xp = if self.pad > 0 {
@@ -112,7 +124,8 @@ impl Conv1dBlock {
 
     /// `(B, C_in, T)` -> `(B, C_out, T)`.
     pub fn forward(&self, x: &Tensor, products: Products) -> Result<Tensor> {
-        candle_nn::ops::mish(&self.norm.forward(&self.conv.forward(x, products)?)?)
+        // The normalised tensor has no other reader, so the fused Mish gives the same bits.
+        crate::kernels::mish(&self.norm.forward(&self.conv.forward(x, products)?)?)
     }
 }
 
@@ -163,6 +176,8 @@ impl ResidualBlock {
         let out = self.conv1.forward(x, products)?;
         let emb = self
             .cond_encoder
+            // Every block reads `cond`: candle's composition keeps the order in which its
+            // gradient is summed (`kernels::mish` is for single-reader inputs).
             .forward(&candle_nn::ops::mish(cond)?, products)?
             .unsqueeze(D::Minus1)?;
         let out = if self.film_scale {
@@ -357,7 +372,7 @@ impl ConditionalUnet1d {
         let emb = self
             .timestep_embedding(timesteps, device)?
             .to_dtype(self.step_lin1.weight().dtype())?;
-        let h = candle_nn::ops::mish(&self.step_lin1.forward(&emb, products)?)?;
+        let h = crate::kernels::mish(&self.step_lin1.forward(&emb, products)?)?;
         self.step_lin2.forward(&h, products)
     }
 
@@ -441,5 +456,64 @@ mod tests {
             .to_scalar()
             .expect("s");
         assert!(d < 1e-5, "{d}");
+    }
+
+    /// The constant-weight convolution (`kernels::conv1d`, one node) gives the composed
+    /// path's output and input gradient bit for bit in f32, for the U-Net's geometries: its
+    /// blocks (k = 5, pad 2), the downsample (k = 3, stride 2, pad 1), the residual 1x1, the
+    /// upsample's convolution (k = 4, pad 2) and an odd length. The composed path is taken by
+    /// making the same weights variables.
+    #[test]
+    fn constant_weight_conv1d_is_the_composed_path_bit_for_bit() -> Result<()> {
+        use candle_core::Var;
+        let rand = |shape: &[usize], seed: u64| {
+            crate::kernels::test_util::rand(shape, seed).to_dtype(DType::F32)
+        };
+        for (i, &(c, co, t, k, stride, pad)) in [
+            (3, 8, 16, 5, 1, 2),
+            (8, 8, 16, 3, 2, 1),
+            (8, 4, 8, 1, 1, 0),
+            (4, 4, 15, 4, 1, 2),
+            (2, 3, 7, 3, 2, 1),
+        ]
+        .iter()
+        .enumerate()
+        {
+            let x = Var::from_tensor(&rand(&[3, c, t], 10 + i as u64)?)?;
+            let (w, b) = (
+                rand(&[co, c, k], 20 + i as u64)?,
+                rand(&[co], 30 + i as u64)?,
+            );
+            let constant = Conv1dGemm {
+                weight: w.clone(),
+                bias: b.clone(),
+                stride,
+                pad,
+            };
+            let tracked = Conv1dGemm {
+                weight: Var::from_tensor(&w)?.as_tensor().clone(),
+                bias: Var::from_tensor(&b)?.as_tensor().clone(),
+                stride,
+                pad,
+            };
+            let yc = constant.forward(x.as_tensor(), Products::PerSample)?;
+            let yt = tracked.forward(x.as_tensor(), Products::PerSample)?;
+            let bits = |t: &Tensor| -> Result<Vec<u32>> {
+                Ok(t.flatten_all()?
+                    .to_vec1::<f32>()?
+                    .iter()
+                    .map(|v| v.to_bits())
+                    .collect())
+            };
+            assert_eq!(bits(&yc)?, bits(&yt)?, "output, case {i}");
+            let r = rand(yc.dims(), 40 + i as u64)?;
+            let gc = (yc * &r)?.sum_all()?.backward()?;
+            let gt = (yt * &r)?.sum_all()?.backward()?;
+            let dx = |g: &candle_core::backprop::GradStore| {
+                g.get(x.as_tensor()).cloned().expect("input gradient")
+            };
+            assert_eq!(bits(&dx(&gc))?, bits(&dx(&gt))?, "input gradient, case {i}");
+        }
+        Ok(())
     }
 }

@@ -64,7 +64,7 @@ pub fn right_shared(x: &Tensor, w: &Tensor, products: Products) -> Result<Tensor
 
 /// Which side of the product the shared matrix is on.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Side {
+pub(super) enum Side {
     /// `W x_b`.
     Left,
     /// `x_b W`.
@@ -106,9 +106,9 @@ fn per_sample(x: &Tensor, w: &Tensor, side: Side) -> Result<Tensor> {
 
 /// The custom op of [`per_sample`]: `x (B, p, q)` and the stored weight.
 #[derive(Clone, Copy, Debug)]
-struct PerSampleProduct {
-    side: Side,
-    transpose: bool,
+pub(super) struct PerSampleProduct {
+    pub(super) side: Side,
+    pub(super) transpose: bool,
 }
 
 impl PerSampleProduct {
@@ -117,13 +117,13 @@ impl PerSampleProduct {
     /// cost 3x its arithmetic), and each product gets candle's CPU matmul with exactly the
     /// layouts a batch of one's `Tensor::matmul` passes it (a contiguous weight, or its
     /// transposed view), so the bits are those of a batch of one.
-    fn forward<T: WithDType>(
+    pub(super) fn products<T: WithDType>(
         &self,
         x: &CpuStorage,
         lx: &Layout,
         w: &CpuStorage,
         lw: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
+    ) -> Result<(Vec<T>, Shape)> {
         let [b, p, q] = *lx.dims() else {
             candle_core::bail!(
                 "per-sample product: x must be (B, p, q), got {:?}",
@@ -160,7 +160,19 @@ impl PerSampleProduct {
             };
             out.extend_from_slice(y.as_slice::<T>()?);
         }
-        Ok((T::to_cpu_storage_owned(out), Shape::from((b, m, n))))
+        Ok((out, Shape::from((b, m, n))))
+    }
+
+    /// [`PerSampleProduct::products`] as a storage.
+    pub(super) fn forward<T: WithDType>(
+        &self,
+        x: &CpuStorage,
+        lx: &Layout,
+        w: &CpuStorage,
+        lw: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (out, shape) = self.products::<T>(x, lx, w, lw)?;
+        Ok((T::to_cpu_storage_owned(out), shape))
     }
 }
 

@@ -15,7 +15,7 @@
 
 use super::contiguous;
 use candle_core::backend::BackendStorage;
-use candle_core::{CpuStorage, CustomOp1, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Result, Shape, Tensor};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
@@ -43,6 +43,7 @@ impl Geom {
         self.c * self.kh * self.kw
     }
 
+    #[cfg(test)]
     /// For output pixel (oy, ox) and column `col`, the input offset within one image, if the
     /// tap falls inside (else it reads the zero padding).
     #[inline]
@@ -69,9 +70,24 @@ impl Geom {
     }
 }
 
+/// The output positions `o` in `0..n_out` whose tap `k` reads inside the input, i.e. with
+/// `0 <= o·stride + k - pad < n_in`, as a range.
+pub(super) fn taps_inside(
+    k: usize,
+    pad: usize,
+    stride: usize,
+    n_in: usize,
+    n_out: usize,
+) -> (usize, usize) {
+    let lo = pad.saturating_sub(k).div_ceil(stride);
+    let hi = (n_in + pad).saturating_sub(k).div_ceil(stride);
+    (lo.min(n_out), hi.min(n_out).max(lo.min(n_out)))
+}
+
+/// `(B, C, H, W)` → `(B, L, C k_h k_w)` columns (zero where a tap reads the padding).
 fn im2col<T: Copy + Default + Send + Sync>(x: &[T], b: usize, g: Geom) -> Vec<T> {
     let (ho, wo) = g.out_hw();
-    let (l, ckk, img) = (ho * wo, g.ckk(), g.c * g.h * g.w);
+    let (l, ckk, img, kk) = (ho * wo, g.ckk(), g.c * g.h * g.w, g.kh * g.kw);
     let mut out = vec![T::default(); b * l * ckk];
     out.par_chunks_mut(l * ckk)
         .zip(x.par_chunks(img))
@@ -79,27 +95,84 @@ fn im2col<T: Copy + Default + Send + Sync>(x: &[T], b: usize, g: Geom) -> Vec<T>
             for oy in 0..ho {
                 for ox in 0..wo {
                     let row = &mut cols[(oy * wo + ox) * ckk..][..ckk];
-                    g.visit(oy, ox, |col, at| row[col] = src[at]);
+                    // The kernel columns kx whose input column ox·s + kx - pad is inside.
+                    let x0 = ox * g.stride;
+                    let kx_lo = g.pad.saturating_sub(x0);
+                    let kx_hi = g.kw.min((g.w + g.pad).saturating_sub(x0));
+                    if kx_lo >= kx_hi {
+                        continue;
+                    }
+                    let ix_lo = x0 + kx_lo - g.pad;
+                    let n = kx_hi - kx_lo;
+                    for ky in 0..g.kh {
+                        let iy = oy * g.stride + ky;
+                        if iy < g.pad || iy - g.pad >= g.h {
+                            continue;
+                        }
+                        let iy = iy - g.pad;
+                        for ci in 0..g.c {
+                            let at = (ci * g.h + iy) * g.w + ix_lo;
+                            let col = ci * kk + ky * g.kw + kx_lo;
+                            row[col..col + n].copy_from_slice(&src[at..at + n]);
+                        }
+                    }
                 }
             }
         });
     out
 }
 
+/// `(B, L, C k_h k_w)` → `(B, C, H, W)`, summing overlapping taps (im2col's adjoint).
+///
+/// Each input element starts at zero and adds its taps in the order of their output
+/// positions `(oy, ox)`; that is the order a walk over the output positions gives, and it is
+/// kept here (for a fixed input element, a larger `ky` means a smaller `oy`, so the taps are
+/// walked with `ky` and `kx` descending), so the sums are the same bits whichever walk is
+/// used. The columns are first transposed to `(C k_h k_w, L)`, so that the inner loop runs
+/// along an output row on both sides.
 fn col2im<T>(cols: &[T], b: usize, g: Geom) -> Vec<T>
 where
     T: Copy + Default + Send + Sync + std::ops::AddAssign,
 {
     let (ho, wo) = g.out_hw();
-    let (l, ckk, img) = (ho * wo, g.ckk(), g.c * g.h * g.w);
+    let (l, ckk, img, kk) = (ho * wo, g.ckk(), g.c * g.h * g.w, g.kh * g.kw);
     let mut out = vec![T::default(); b * img];
     out.par_chunks_mut(img)
         .zip(cols.par_chunks(l * ckk))
         .for_each(|(dst, src)| {
-            for oy in 0..ho {
-                for ox in 0..wo {
-                    let row = &src[(oy * wo + ox) * ckk..][..ckk];
-                    g.visit(oy, ox, |col, at| dst[at] += row[col]);
+            // Transposed in blocks of 16 output positions, so that both sides stay in cache.
+            let mut t = vec![T::default(); l * ckk];
+            for p0 in (0..l).step_by(16) {
+                let rows = &src[p0 * ckk..(p0 + 16).min(l) * ckk];
+                for col in 0..ckk {
+                    let dst = &mut t[col * l + p0..];
+                    for (d, row) in dst.iter_mut().zip(rows.chunks_exact(ckk)) {
+                        *d = row[col];
+                    }
+                }
+            }
+            for ci in 0..g.c {
+                for ky in (0..g.kh).rev() {
+                    let (oy_lo, oy_hi) = taps_inside(ky, g.pad, g.stride, g.h, ho);
+                    for kx in (0..g.kw).rev() {
+                        let (ox_lo, ox_hi) = taps_inside(kx, g.pad, g.stride, g.w, wo);
+                        let taps = &t[(ci * kk + ky * g.kw + kx) * l..][..l];
+                        for oy in oy_lo..oy_hi {
+                            let iy = oy * g.stride + ky - g.pad;
+                            let drow = &mut dst[(ci * g.h + iy) * g.w..][..g.w];
+                            let trow = &taps[oy * wo..][..wo];
+                            if g.stride == 1 {
+                                let d = &mut drow[ox_lo + kx - g.pad..ox_hi + kx - g.pad];
+                                for (a, &v) in d.iter_mut().zip(&trow[ox_lo..ox_hi]) {
+                                    *a += v;
+                                }
+                            } else {
+                                for (ox, &v) in trow.iter().enumerate().take(ox_hi).skip(ox_lo) {
+                                    drow[ox * g.stride + kx - g.pad] += v;
+                                }
+                            }
+                        }
+                    }
                 }
             }
         });
@@ -157,6 +230,112 @@ impl CustomOp1 for Col2Im {
     }
 }
 
+/// The per-image convolution of [`conv2d`] for a constant weight, as one graph node:
+/// im2col, each image's product with the weight and the transpose to `(B, C_out, H_out,
+/// W_out)` in one forward, and the input's gradient (the products with the weight, then
+/// col2im) in one backward. The composed path (im2col, reshape, per-sample product,
+/// transpose, copy) computes the same products in the same order, so the values are the
+/// same bits; what is saved is the backward pass's zero-filled gradient buffer and addition
+/// for each of the five intermediate nodes (two of them of the columns' size, `k_h k_w`
+/// times the input's). The weight gets no gradient: it is used only when it is not tracked.
+#[derive(Clone, Copy, Debug)]
+struct ConstantWeightConv(Geom);
+
+impl ConstantWeightConv {
+    /// The product of each image's columns `(L, C k k)` with the stored weight `(C_out, C k
+    /// k)` read transposed, as [`super::batch`]'s per-sample product computes it.
+    const PRODUCT: super::batch::PerSampleProduct = super::batch::PerSampleProduct {
+        side: super::batch::Side::Right,
+        transpose: true,
+    };
+
+    fn forward<T>(&self, x: &[T], b: usize, w: &CpuStorage, lw: &Layout) -> Result<CpuStorage>
+    where
+        T: candle_core::WithDType + Default,
+    {
+        let g = self.0;
+        let (ho, wo) = g.out_hw();
+        let (l, ckk) = (ho * wo, g.ckk());
+        let co = lw.dims()[0];
+        let Some((w0, _)) = lw.contiguous_offsets() else {
+            candle_core::bail!("conv2d: the weight must be contiguous");
+        };
+        let cols = T::to_cpu_storage_owned(im2col(x, b, g));
+        let (y, _) = Self::PRODUCT.forward::<T>(
+            &cols,
+            &Layout::contiguous((b, l, ckk)),
+            w,
+            &Layout::contiguous_with_offset((co, ckk), w0),
+        )?;
+        // (B, L, C_out) -> (B, C_out, L).
+        let y = y.as_slice::<T>()?;
+        let mut out = vec![T::default(); b * co * l];
+        for (dst, src) in out.chunks_mut(co * l).zip(y.chunks(l * co)) {
+            for (p, row) in src.chunks(co).enumerate() {
+                for (c, &v) in row.iter().enumerate() {
+                    dst[c * l + p] = v;
+                }
+            }
+        }
+        Ok(T::to_cpu_storage_owned(out))
+    }
+}
+
+impl CustomOp2 for ConstantWeightConv {
+    fn name(&self) -> &'static str {
+        "mte-constant-weight-conv2d"
+    }
+
+    fn cpu_fwd(
+        &self,
+        sx: &CpuStorage,
+        lx: &Layout,
+        sw: &CpuStorage,
+        lw: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = self.0;
+        let b = lx.dims()[0];
+        let co = lw.dims()[0];
+        let (ho, wo) = g.out_hw();
+        let out = match (sx, sw) {
+            (CpuStorage::F32(v), CpuStorage::F32(_)) => {
+                self.forward(contiguous(v, lx)?, b, sw, lw)?
+            }
+            (CpuStorage::F64(v), CpuStorage::F64(_)) => {
+                self.forward(contiguous(v, lx)?, b, sw, lw)?
+            }
+            _ => candle_core::bail!(
+                "conv2d: unsupported dtypes {:?} x {:?}",
+                sx.dtype(),
+                sw.dtype()
+            ),
+        };
+        Ok((out, Shape::from((b, co, ho, wo))))
+    }
+
+    fn bwd(
+        &self,
+        _x: &Tensor,
+        w: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let g = self.0;
+        let (b, co, ho, wo) = grad.dims4()?;
+        // (B, C_out, L) -> (B, L, C_out), times the stored weight (C_out, C k k).
+        let grad = grad
+            .reshape((b, co, ho * wo))?
+            .transpose(1, 2)?
+            .contiguous()?;
+        let back = super::batch::PerSampleProduct {
+            side: super::batch::Side::Right,
+            transpose: false,
+        };
+        let dcols = grad.apply_op2_no_bwd(&w.reshape((co, g.ckk()))?, &back)?;
+        Ok((Some(dcols.apply_op1_no_bwd(&Col2Im(g))?), None))
+    }
+}
+
 /// Convolution of `x (B, C, H, W)` with `weight (C_out, C, k_h, k_w)`, zero padding `pad`,
 /// stride `stride`: im2col + matmul on the CPU (one product per image, or one for the batch:
 /// `products`), candle's `conv2d` elsewhere.
@@ -186,6 +365,12 @@ pub fn conv2d(
         stride,
         pad,
     };
+    if products == super::Products::PerSample && !weight.track_op() {
+        // Constant weights (a loaded checkpoint under evaluation or attack): one node.
+        return x
+            .contiguous()?
+            .apply_op2(&weight.contiguous()?, ConstantWeightConv(g));
+    }
     let (ho, wo) = g.out_hw();
     let cols = x.contiguous()?.apply_op1(Im2Col(g))?;
     // (H_out W_out, C k k) x (C k k, C_out) per image, or for the batch at once.
@@ -336,6 +521,101 @@ mod tests {
                     );
                 }
             }
+        }
+        Ok(())
+    }
+
+    /// im2col and col2im against the plain walk over output positions and taps (the
+    /// definition), bit for bit in f32: im2col is a gather, and col2im must add each input
+    /// element's taps in the walk's order. Geometries: every case above, wide padding (pad >=
+    /// k), stride 3 and a 1-pixel input.
+    #[test]
+    fn columns_match_the_walk_over_taps_bit_for_bit() {
+        let mut cases = CASES.to_vec();
+        cases.extend([(3, 5, 6, 3, 1, 3), (2, 11, 10, 3, 3, 1), (2, 1, 1, 3, 1, 1)]);
+        for (i, &(c, h, w, k, s, p)) in cases.iter().enumerate() {
+            let g = Geom {
+                c,
+                h,
+                w,
+                kh: k,
+                kw: k,
+                stride: s,
+                pad: p,
+            };
+            let (ho, wo) = g.out_hw();
+            let (l, ckk) = (ho * wo, g.ckk());
+            let b = 2;
+            let x: Vec<f32> = rand(&[b * c * h * w], 40 + i as u64)
+                .to_vec1::<f64>()
+                .expect("x")
+                .into_iter()
+                .map(|v| v as f32)
+                .collect();
+            let mut want = vec![0f32; b * l * ckk];
+            for (bi, cols) in want.chunks_mut(l * ckk).enumerate() {
+                for oy in 0..ho {
+                    for ox in 0..wo {
+                        g.visit(oy, ox, |col, at| {
+                            cols[(oy * wo + ox) * ckk + col] = x[bi * c * h * w + at]
+                        });
+                    }
+                }
+            }
+            assert_eq!(im2col(&x, b, g), want, "im2col, case {i}");
+            let cols: Vec<f32> = rand(&[b * l * ckk], 50 + i as u64)
+                .to_vec1::<f64>()
+                .expect("cols")
+                .into_iter()
+                .map(|v| v as f32)
+                .collect();
+            let mut want = vec![0f32; b * c * h * w];
+            for (dst, src) in want.chunks_mut(c * h * w).zip(cols.chunks(l * ckk)) {
+                for oy in 0..ho {
+                    for ox in 0..wo {
+                        g.visit(oy, ox, |col, at| dst[at] += src[(oy * wo + ox) * ckk + col]);
+                    }
+                }
+            }
+            let got = col2im(&cols, b, g);
+            let same = got
+                .iter()
+                .zip(&want)
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same, "col2im, case {i}: {got:?} vs {want:?}");
+        }
+    }
+
+    /// The constant-weight convolution (one node) gives the composed path's output and input
+    /// gradient bit for bit in f32 (same products, same order), and no weight gradient.
+    #[test]
+    fn constant_weight_convolution_is_the_composed_path_bit_for_bit() -> Result<()> {
+        use super::super::Products::PerSample;
+        for (i, &(c, h, w, k, s, p)) in CASES.iter().enumerate() {
+            let f = |t: Tensor| t.to_dtype(DType::F32);
+            let x = Var::from_tensor(&f(rand(&[3, c, h, w], 60 + i as u64))?)?;
+            let wt = f(rand(&[5, c, k, k], 70 + i as u64))?;
+            let (ho, wo) = ((h + 2 * p - k) / s + 1, (w + 2 * p - k) / s + 1);
+            let r = f(rand(&[3, 5, ho, wo], 80 + i as u64))?;
+            // The composed path: the same weight as a variable (tracked), so conv2d takes it.
+            let wv = Var::from_tensor(&wt)?;
+            let composed = conv2d(x.as_tensor(), wv.as_tensor(), s, p, PerSample)?;
+            let fused = conv2d(x.as_tensor(), &wt, s, p, PerSample)?;
+            let bits = |t: &Tensor| -> Result<Vec<u32>> {
+                Ok(t.flatten_all()?
+                    .to_vec1::<f32>()?
+                    .iter()
+                    .map(|v| v.to_bits())
+                    .collect())
+            };
+            assert_eq!(bits(&composed)?, bits(&fused)?, "output, case {i}");
+            let gc = (composed * &r)?.sum_all()?.backward()?;
+            let gf = (fused * &r)?.sum_all()?.backward()?;
+            let dx = |g: &candle_core::backprop::GradStore| {
+                g.get(x.as_tensor()).cloned().expect("input gradient")
+            };
+            assert_eq!(bits(&dx(&gc))?, bits(&dx(&gf))?, "input gradient, case {i}");
+            assert!(gf.get(&wt).is_none(), "a constant weight gets no gradient");
         }
         Ok(())
     }

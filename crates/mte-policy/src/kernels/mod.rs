@@ -8,13 +8,17 @@
 //! differences in their tests). On other devices every function here falls back to candle's
 //! own ops, so a CUDA build needs no change.
 
+mod activation;
 mod batch;
 mod conv;
+mod conv1d;
 mod norm;
 mod pool;
 
+pub use activation::{mish, relu};
 pub use batch::{Linear, Products, left_shared, linear, right_shared};
 pub use conv::{Conv2d, conv2d};
+pub use conv1d::{constant_weights, conv1d_constant};
 pub use norm::{GroupNorm, group_norm};
 pub use pool::max_pool_3x3_s2;
 

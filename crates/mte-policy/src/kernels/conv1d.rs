@@ -1,0 +1,238 @@
+//! The U-Net's 1-D convolution for constant weights (a loaded checkpoint under evaluation or
+//! attack) as one graph node, bit for bit the composed path of `diffusion::unet::Conv1dGemm`.
+//!
+//! The composed path pads the input, takes `k` shifted narrows, stacks them into columns
+//! `(B, C k, T_out)`, multiplies each sample by the weight `(C_out, C k)` and adds the bias:
+//! about `k + 6` graph nodes, each of which costs the backward pass a zero-filled buffer and
+//! an addition. Here the forward builds the same columns and calls the same per-sample
+//! product, then adds the bias as `broadcast_add` does; the backward multiplies by the
+//! transposed weight (the product's own backward) and sums each input element's taps in the
+//! order candle's backward pass adds the narrows' gradients (last tap first), so the input's
+//! gradient is the same bits (checked against the composed path in the tests).
+//!
+//! Conventions: input `(B, C, T)`, weight `(C_out, C, k)` as torch stores it, zero padding
+//! `pad` on both sides, output position `t` reads input `t · stride + j - pad` for tap `j`.
+
+use super::batch::{PerSampleProduct, Side};
+use super::contiguous;
+use super::conv::taps_inside;
+use candle_core::backend::BackendStorage;
+use candle_core::{CpuStorage, CustomOp1, CustomOp3, Layout, Result, Shape, Tensor, WithDType};
+
+/// Geometry of one 1-D convolution.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Geom1 {
+    c: usize,
+    t: usize,
+    k: usize,
+    stride: usize,
+    pad: usize,
+}
+
+impl Geom1 {
+    fn t_out(&self) -> usize {
+        (self.t + 2 * self.pad - self.k) / self.stride + 1
+    }
+}
+
+/// `(B, C, T)` → columns `(B, C k, T_out)`.
+fn columns<T: Copy + Default>(x: &[T], b: usize, g: Geom1) -> Vec<T> {
+    let to = g.t_out();
+    let mut cols = vec![T::default(); b * g.c * g.k * to];
+    for (dst, src) in cols.chunks_mut(g.c * g.k * to).zip(x.chunks(g.c * g.t)) {
+        for c in 0..g.c {
+            let xs = &src[c * g.t..][..g.t];
+            for j in 0..g.k {
+                let row = &mut dst[(c * g.k + j) * to..][..to];
+                let (lo, hi) = taps_inside(j, g.pad, g.stride, g.t, to);
+                if g.stride == 1 {
+                    row[lo..hi].copy_from_slice(&xs[lo + j - g.pad..hi + j - g.pad]);
+                } else {
+                    for (o, v) in row.iter_mut().enumerate().take(hi).skip(lo) {
+                        *v = xs[o * g.stride + j - g.pad];
+                    }
+                }
+            }
+        }
+    }
+    cols
+}
+
+/// Columns' gradient `(B, C k, T_out)` → the input's `(B, C, T)`: each element sums its taps
+/// from the last to the first, starting from zero.
+fn uncolumns<T: Copy + Default + std::ops::AddAssign>(cols: &[T], b: usize, g: Geom1) -> Vec<T> {
+    let to = g.t_out();
+    let mut dx = vec![T::default(); b * g.c * g.t];
+    for (dst, src) in dx.chunks_mut(g.c * g.t).zip(cols.chunks(g.c * g.k * to)) {
+        for c in 0..g.c {
+            let xs = &mut dst[c * g.t..][..g.t];
+            for j in (0..g.k).rev() {
+                let row = &src[(c * g.k + j) * to..][..to];
+                let (lo, hi) = taps_inside(j, g.pad, g.stride, g.t, to);
+                if g.stride == 1 {
+                    let d = &mut xs[lo + j - g.pad..hi + j - g.pad];
+                    for (a, &v) in d.iter_mut().zip(&row[lo..hi]) {
+                        *a += v;
+                    }
+                } else {
+                    for (o, &v) in row.iter().enumerate().take(hi).skip(lo) {
+                        xs[o * g.stride + j - g.pad] += v;
+                    }
+                }
+            }
+        }
+    }
+    dx
+}
+
+/// The per-sample product `W (C_out, C k) · cols_b`, as `kernels::left_shared` computes it.
+const PRODUCT: PerSampleProduct = PerSampleProduct {
+    side: Side::Left,
+    transpose: false,
+};
+
+/// `x (B, C, T)`, `weight (C_out, C, k)`, `bias (C_out)` → `(B, C_out, T_out)`.
+#[derive(Clone, Copy, Debug)]
+struct ConstantWeightConv1d(Geom1);
+
+impl ConstantWeightConv1d {
+    fn forward<T: WithDType + Default>(
+        &self,
+        x: &[T],
+        b: usize,
+        (sw, lw): (&CpuStorage, &Layout),
+        bias: &[T],
+    ) -> Result<CpuStorage> {
+        let g = self.0;
+        let (to, ck, co) = (g.t_out(), g.c * g.k, lw.dims()[0]);
+        let Some((w0, _)) = lw.contiguous_offsets() else {
+            candle_core::bail!("conv1d: the weight must be contiguous");
+        };
+        let cols = T::to_cpu_storage_owned(columns(x, b, g));
+        let (mut y, _) = PRODUCT.products::<T>(
+            &cols,
+            &Layout::contiguous((b, ck, to)),
+            sw,
+            &Layout::contiguous_with_offset((co, ck), w0),
+        )?;
+        for sample in y.chunks_mut(co * to) {
+            for (row, &bv) in sample.chunks_mut(to).zip(bias) {
+                for v in row {
+                    *v += bv;
+                }
+            }
+        }
+        Ok(T::to_cpu_storage_owned(y))
+    }
+}
+
+impl CustomOp3 for ConstantWeightConv1d {
+    fn name(&self) -> &'static str {
+        "mte-constant-weight-conv1d"
+    }
+
+    fn cpu_fwd(
+        &self,
+        sx: &CpuStorage,
+        lx: &Layout,
+        sw: &CpuStorage,
+        lw: &Layout,
+        sb: &CpuStorage,
+        lb: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let b = lx.dims()[0];
+        let co = lw.dims()[0];
+        let out = match (sx, sb) {
+            (CpuStorage::F32(x), CpuStorage::F32(bias)) => {
+                self.forward(contiguous(x, lx)?, b, (sw, lw), contiguous(bias, lb)?)?
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(bias)) => {
+                self.forward(contiguous(x, lx)?, b, (sw, lw), contiguous(bias, lb)?)?
+            }
+            _ => candle_core::bail!(
+                "conv1d: unsupported dtypes {:?}, {:?}",
+                sx.dtype(),
+                sb.dtype()
+            ),
+        };
+        Ok((out, Shape::from((b, co, self.0.t_out()))))
+    }
+
+    fn bwd(
+        &self,
+        _x: &Tensor,
+        w: &Tensor,
+        _bias: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let g = self.0;
+        let co = w.dim(0)?;
+        // The product's backward: the same side with the weight read transposed.
+        let back = PerSampleProduct {
+            side: Side::Left,
+            transpose: true,
+        };
+        let dcols = grad
+            .contiguous()?
+            .apply_op2_no_bwd(&w.reshape((co, g.c * g.k))?, &back)?;
+        Ok((Some(dcols.apply_op1_no_bwd(&Uncolumns(g))?), None, None))
+    }
+}
+
+/// [`uncolumns`] as an op on the columns' gradient.
+#[derive(Clone, Copy, Debug)]
+struct Uncolumns(Geom1);
+
+impl CustomOp1 for Uncolumns {
+    fn name(&self) -> &'static str {
+        "mte-conv1d-uncolumns"
+    }
+
+    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        let g = self.0;
+        let b = layout.dims()[0];
+        let out = match storage {
+            CpuStorage::F32(v) => CpuStorage::F32(uncolumns(contiguous(v, layout)?, b, g)),
+            CpuStorage::F64(v) => CpuStorage::F64(uncolumns(contiguous(v, layout)?, b, g)),
+            other => candle_core::bail!("conv1d: unsupported dtype {:?}", other.dtype()),
+        };
+        Ok((out, Shape::from((b, g.c, g.t))))
+    }
+}
+
+/// Whether [`conv1d_constant`] applies: CPU tensors, and neither weight nor bias tracked.
+pub fn constant_weights(x: &Tensor, weight: &Tensor, bias: &Tensor) -> bool {
+    x.device().is_cpu() && !weight.track_op() && !bias.track_op()
+}
+
+/// `x (B, C, T)` convolved with a constant `weight (C_out, C, k)` plus `bias (C_out)`, with
+/// per-sample products (batch-invariant): `(B, C_out, T_out)`. Gradients flow to `x` only.
+pub fn conv1d_constant(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: &Tensor,
+    stride: usize,
+    pad: usize,
+) -> Result<Tensor> {
+    let (_, c, t) = x.dims3()?;
+    let (co, ci, k) = weight.dims3()?;
+    if ci != c || stride == 0 || t + 2 * pad < k || bias.dims() != [co] {
+        candle_core::bail!(
+            "conv1d: input (B, {c}, {t}) does not fit weight ({co}, {ci}, {k}) and bias {:?} with stride {stride}, padding {pad}",
+            bias.dims()
+        );
+    }
+    let g = Geom1 {
+        c,
+        t,
+        k,
+        stride,
+        pad,
+    };
+    x.contiguous()?.apply_op3(
+        &weight.contiguous()?,
+        &bias.contiguous()?,
+        ConstantWeightConv1d(g),
+    )
+}

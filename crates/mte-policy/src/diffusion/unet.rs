@@ -498,21 +498,12 @@ mod tests {
             };
             let yc = constant.forward(x.as_tensor(), Products::PerSample)?;
             let yt = tracked.forward(x.as_tensor(), Products::PerSample)?;
-            let bits = |t: &Tensor| -> Result<Vec<u32>> {
-                Ok(t.flatten_all()?
-                    .to_vec1::<f32>()?
-                    .iter()
-                    .map(|v| v.to_bits())
-                    .collect())
-            };
-            assert_eq!(bits(&yc)?, bits(&yt)?, "output, case {i}");
+            use crate::kernels::test_util::{bits, probe_gradient};
+            assert_eq!(bits(&yc), bits(&yt), "output, case {i}");
             let r = rand(yc.dims(), 40 + i as u64)?;
-            let gc = (yc * &r)?.sum_all()?.backward()?;
-            let gt = (yt * &r)?.sum_all()?.backward()?;
-            let dx = |g: &candle_core::backprop::GradStore| {
-                g.get(x.as_tensor()).cloned().expect("input gradient")
-            };
-            assert_eq!(bits(&dx(&gc))?, bits(&dx(&gt))?, "input gradient, case {i}");
+            let (dc, _) = probe_gradient(&yc, &r, &x);
+            let (dt, _) = probe_gradient(&yt, &r, &x);
+            assert_eq!(bits(&dc), bits(&dt), "input gradient, case {i}");
         }
         Ok(())
     }

@@ -219,11 +219,14 @@ impl CustomOp2 for MishBackward {
     }
 }
 
+/// Whether the fused kernels take `x`: a CPU tensor of f32 or f64.
+fn fused_on(x: &Tensor) -> bool {
+    x.device().is_cpu() && matches!(x.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
+}
+
 /// Mish of `x`: one fused node on the CPU (f32, f64), candle's composition elsewhere.
 pub fn mish(x: &Tensor) -> Result<Tensor> {
-    let fused = x.device().is_cpu()
-        && matches!(x.dtype(), candle_core::DType::F32 | candle_core::DType::F64);
-    if fused {
+    if fused_on(x) {
         x.contiguous()?.apply_op1(Mish {
             saved: Arc::default(),
             keep: x.track_op(),
@@ -303,9 +306,7 @@ impl CustomOp2 for ReluBackward {
 
 /// ReLU of `x`: one fused node on the CPU (f32, f64), candle's op elsewhere.
 pub fn relu(x: &Tensor) -> Result<Tensor> {
-    let fused = x.device().is_cpu()
-        && matches!(x.dtype(), candle_core::DType::F32 | candle_core::DType::F64);
-    if fused {
+    if fused_on(x) {
         x.contiguous()?.apply_op1(Relu)
     } else {
         x.relu()
@@ -315,6 +316,7 @@ pub fn relu(x: &Tensor) -> Result<Tensor> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::kernels::test_util::{bits, probe_gradient};
     use candle_core::{DType, Var};
 
     /// Values and gradients are candle's composition's, bit for bit, in f32 and f64, over
@@ -338,27 +340,17 @@ mod tests {
             let theirs = candle_nn::ops::mish(x.as_tensor())?;
             // An untracked input (no backward can follow) takes the path that keeps nothing.
             let untracked = mish(&x.as_tensor().detach())?;
-            let bits = |t: &Tensor| -> Result<Vec<u64>> {
-                Ok(t.to_dtype(DType::F64)?
-                    .to_vec1::<f64>()?
-                    .iter()
-                    .map(|v| v.to_bits())
-                    .collect())
-            };
-            assert_eq!(bits(&ours)?, bits(&theirs)?, "values, {dtype:?}");
-            assert_eq!(bits(&untracked)?, bits(&theirs)?, "untracked, {dtype:?}");
-            let go = (ours * &r)?.sum_all()?.backward()?;
-            let gt = (theirs * &r)?.sum_all()?.backward()?;
-            let dx = |g: &candle_core::backprop::GradStore| {
-                g.get(x.as_tensor()).cloned().expect("gradient")
-            };
-            assert_eq!(bits(&dx(&go))?, bits(&dx(&gt))?, "gradients, {dtype:?}");
+            assert_eq!(bits(&ours), bits(&theirs), "values, {dtype:?}");
+            assert_eq!(bits(&untracked), bits(&theirs), "untracked, {dtype:?}");
+            let (go, _) = probe_gradient(&ours, &r, &x);
+            let (gt, _) = probe_gradient(&theirs, &r, &x);
+            assert_eq!(bits(&go), bits(&gt), "gradients, {dtype:?}");
             // Without saved intermediates the backward recomputes them: the same bits.
             let unsaved = MishBackward {
                 saved: Arc::new(OnceLock::new()),
             };
             let again = x.as_tensor().apply_op2_no_bwd(&r, &unsaved)?;
-            assert_eq!(bits(&again)?, bits(&dx(&gt))?, "recomputed, {dtype:?}");
+            assert_eq!(bits(&again), bits(&gt), "recomputed, {dtype:?}");
         }
         Ok(())
     }
@@ -375,20 +367,10 @@ mod tests {
             let x = Var::from_tensor(&Tensor::new(xs.as_slice(), &dev)?.to_dtype(dtype)?)?;
             let r = Tensor::new(gs.as_slice(), &dev)?.to_dtype(dtype)?;
             let (ours, theirs) = (relu(x.as_tensor())?, x.as_tensor().relu()?);
-            let bits = |t: &Tensor| -> Result<Vec<u64>> {
-                Ok(t.to_dtype(DType::F64)?
-                    .to_vec1::<f64>()?
-                    .iter()
-                    .map(|v| v.to_bits())
-                    .collect())
-            };
-            assert_eq!(bits(&ours)?, bits(&theirs)?, "values, {dtype:?}");
-            let go = (ours * &r)?.sum_all()?.backward()?;
-            let gt = (theirs * &r)?.sum_all()?.backward()?;
-            let dx = |g: &candle_core::backprop::GradStore| {
-                g.get(x.as_tensor()).cloned().expect("gradient")
-            };
-            assert_eq!(bits(&dx(&go))?, bits(&dx(&gt))?, "gradients, {dtype:?}");
+            assert_eq!(bits(&ours), bits(&theirs), "values, {dtype:?}");
+            let (go, _) = probe_gradient(&ours, &r, &x);
+            let (gt, _) = probe_gradient(&theirs, &r, &x);
+            assert_eq!(bits(&go), bits(&gt), "gradients, {dtype:?}");
         }
         Ok(())
     }

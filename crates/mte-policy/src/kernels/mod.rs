@@ -75,6 +75,33 @@ pub(crate) mod test_util {
         Tensor::from_vec(v, shape, &Device::Cpu).expect("tensor")
     }
 
+    /// Every value's bits (through f64, exact for f32 values), to compare results bit for
+    /// bit.
+    pub fn bits(t: &Tensor) -> Vec<u64> {
+        t.flatten_all()
+            .and_then(|t| t.to_dtype(candle_core::DType::F64))
+            .and_then(|t| t.to_vec1::<f64>())
+            .expect("values")
+            .iter()
+            .map(|v| v.to_bits())
+            .collect()
+    }
+
+    /// The gradient of the probe `sum(y ⊙ r)` with respect to the variable `x`, and the
+    /// whole gradient store.
+    pub fn probe_gradient(
+        y: &Tensor,
+        r: &Tensor,
+        x: &candle_core::Var,
+    ) -> (Tensor, candle_core::backprop::GradStore) {
+        let store = (y * r)
+            .and_then(|p| p.sum_all())
+            .and_then(|p| p.backward())
+            .expect("backward");
+        let dx = store.get(x.as_tensor()).cloned().expect("input gradient");
+        (dx, store)
+    }
+
     /// Max |a - b|.
     pub fn max_diff(a: &Tensor, b: &Tensor) -> f64 {
         (a - b)

@@ -6,8 +6,8 @@
 //! `(B, D, T)` inside; the timestep is an integer per batch row; the global conditioning is
 //! `(B, n_obs_steps * per_step_dim)`.
 
-use candle_core::{D, Device, Module, Result, Tensor};
-use candle_nn::{GroupNorm, VarBuilder};
+use candle_core::{D, Device, Result, Tensor};
+use candle_nn::VarBuilder;
 
 use crate::kernels::{Linear, Products, linear};
 
@@ -108,17 +108,44 @@ impl Conv1dGemm {
     }
 }
 
+/// candle_nn's GroupNorm (keys `weight`, `bias`; γ = 1, β = 0 when created), computed by
+/// `kernels::group_norm_exact`: the same bits as candle_nn's layer, as one graph node when γ
+/// and β are constants.
+#[derive(Clone, Debug)]
+struct UnetGroupNorm {
+    weight: Tensor,
+    bias: Tensor,
+    groups: usize,
+}
+
+impl UnetGroupNorm {
+    fn new(groups: usize, channels: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(UnetGroupNorm {
+            weight: vb.get_with_hints(channels, "weight", candle_nn::Init::Const(1.))?,
+            bias: vb.get_with_hints(channels, "bias", candle_nn::Init::Const(0.))?,
+            groups,
+        })
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        crate::kernels::group_norm_exact(x, &self.weight, &self.bias, self.groups, GN_EPS)
+    }
+}
+
 /// Conv1d -> GroupNorm -> Mish (`DiffusionConv1dBlock`; keys `block.0`, `block.1`).
 #[derive(Clone, Debug)]
 pub struct Conv1dBlock {
     conv: Conv1dGemm,
-    norm: GroupNorm,
+    norm: UnetGroupNorm,
 }
 
 impl Conv1dBlock {
     fn new(cin: usize, cout: usize, k: usize, groups: usize, vb: VarBuilder) -> Result<Self> {
         let conv = Conv1dGemm::new(cin, cout, k, 1, k / 2, vb.pp("block.0"))?;
-        let norm = candle_nn::group_norm(groups, cout, GN_EPS, vb.pp("block.1"))?;
+        if groups == 0 || !cout.is_multiple_of(groups) {
+            candle_core::bail!("GroupNorm: {cout} channels do not split into {groups} groups");
+        }
+        let norm = UnetGroupNorm::new(groups, cout, vb.pp("block.1"))?;
         Ok(Conv1dBlock { conv, norm })
     }
 

@@ -219,14 +219,9 @@ impl CustomOp2 for MishBackward {
     }
 }
 
-/// Whether the fused kernels take `x`: a CPU tensor of f32 or f64.
-fn fused_on(x: &Tensor) -> bool {
-    x.device().is_cpu() && matches!(x.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
-}
-
 /// Mish of `x`: one fused node on the CPU (f32, f64), candle's composition elsewhere.
 pub fn mish(x: &Tensor) -> Result<Tensor> {
-    if fused_on(x) {
+    if super::fused_on(x) {
         x.contiguous()?.apply_op1(Mish {
             saved: Arc::default(),
             keep: x.track_op(),
@@ -252,11 +247,7 @@ impl CustomOp1 for Relu {
             // candle's relu is `max(x, 0)`.
             x.iter().map(|&v| v.max0()).collect()
         }
-        let out = match storage {
-            CpuStorage::F32(v) => CpuStorage::F32(relu(contiguous(v, layout)?)),
-            CpuStorage::F64(v) => CpuStorage::F64(relu(contiguous(v, layout)?)),
-            other => candle_core::bail!("relu: unsupported dtype {:?}", other.dtype()),
-        };
+        let out = float_storages!("relu", [(v, storage, layout)], relu(v));
         Ok((out, layout.shape().clone()))
     }
 
@@ -287,26 +278,14 @@ impl CustomOp2 for ReluBackward {
             let pass = |x: T| if x >= T::ZERO { T::ONE } else { T::ZERO };
             x.iter().zip(g).map(|(&x, &g)| g * pass(x)).collect()
         }
-        let out = match (sx, sg) {
-            (CpuStorage::F32(x), CpuStorage::F32(g)) => {
-                CpuStorage::F32(zip(contiguous(x, lx)?, contiguous(g, lg)?))
-            }
-            (CpuStorage::F64(x), CpuStorage::F64(g)) => {
-                CpuStorage::F64(zip(contiguous(x, lx)?, contiguous(g, lg)?))
-            }
-            _ => candle_core::bail!(
-                "relu backward: unsupported dtypes {:?}, {:?}",
-                sx.dtype(),
-                sg.dtype()
-            ),
-        };
+        let out = float_storages!("relu backward", [(x, sx, lx), (g, sg, lg)], zip(x, g));
         Ok((out, lx.shape().clone()))
     }
 }
 
 /// ReLU of `x`: one fused node on the CPU (f32, f64), candle's op elsewhere.
 pub fn relu(x: &Tensor) -> Result<Tensor> {
-    if fused_on(x) {
+    if super::fused_on(x) {
         x.contiguous()?.apply_op1(Relu)
     } else {
         x.relu()

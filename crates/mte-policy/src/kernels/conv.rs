@@ -193,11 +193,7 @@ impl CustomOp1 for Im2Col {
         let b = layout.dims()[0];
         let (ho, wo) = g.out_hw();
         let shape = Shape::from((b, ho * wo, g.ckk()));
-        let out = match storage {
-            CpuStorage::F32(v) => CpuStorage::F32(im2col(contiguous(v, layout)?, b, g)),
-            CpuStorage::F64(v) => CpuStorage::F64(im2col(contiguous(v, layout)?, b, g)),
-            other => candle_core::bail!("im2col: unsupported dtype {:?}", other.dtype()),
-        };
+        let out = float_storages!("im2col", [(v, storage, layout)], im2col(v, b, g));
         Ok((out, shape))
     }
 
@@ -221,11 +217,7 @@ impl CustomOp1 for Col2Im {
         let g = self.0;
         let b = layout.dims()[0];
         let shape = Shape::from((b, g.c, g.h, g.w));
-        let out = match storage {
-            CpuStorage::F32(v) => CpuStorage::F32(col2im(contiguous(v, layout)?, b, g)),
-            CpuStorage::F64(v) => CpuStorage::F64(col2im(contiguous(v, layout)?, b, g)),
-            other => candle_core::bail!("col2im: unsupported dtype {:?}", other.dtype()),
-        };
+        let out = float_storages!("col2im", [(v, storage, layout)], col2im(v, b, g));
         Ok((out, shape))
     }
 }

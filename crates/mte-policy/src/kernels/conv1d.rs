@@ -192,11 +192,7 @@ impl CustomOp1 for Uncolumns {
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
         let g = self.0;
         let b = layout.dims()[0];
-        let out = match storage {
-            CpuStorage::F32(v) => CpuStorage::F32(uncolumns(contiguous(v, layout)?, b, g)),
-            CpuStorage::F64(v) => CpuStorage::F64(uncolumns(contiguous(v, layout)?, b, g)),
-            other => candle_core::bail!("conv1d: unsupported dtype {:?}", other.dtype()),
-        };
+        let out = float_storages!("conv1d", [(v, storage, layout)], uncolumns(v, b, g));
         Ok((out, Shape::from((b, g.c, g.t))))
     }
 }

@@ -16,8 +16,6 @@
 //! encoder uses that one, the U-Net this one, so that their checkpoints' outputs are what they
 //! were.
 
-use super::contiguous;
-use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp3, Device, Layout, Result, Shape, Tensor, WithDType};
 
 /// The scalar operations the replay needs.
@@ -209,25 +207,11 @@ impl CustomOp3 for ExactGroupNorm {
         lb: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let d = Dims::of(lx, self.groups, self.eps)?;
-        let out = match (sx, sg, sb) {
-            (CpuStorage::F32(x), CpuStorage::F32(g), CpuStorage::F32(b)) => {
-                CpuStorage::F32(forward(
-                    contiguous(x, lx)?,
-                    contiguous(g, lg)?,
-                    contiguous(b, lb)?,
-                    d,
-                )?)
-            }
-            (CpuStorage::F64(x), CpuStorage::F64(g), CpuStorage::F64(b)) => {
-                CpuStorage::F64(forward(
-                    contiguous(x, lx)?,
-                    contiguous(g, lg)?,
-                    contiguous(b, lb)?,
-                    d,
-                )?)
-            }
-            _ => candle_core::bail!("group norm: unsupported dtype {:?}", sx.dtype()),
-        };
+        let out = float_storages!(
+            "group norm",
+            [(x, sx, lx), (g, sg, lg), (b, sb, lb)],
+            forward(x, g, b, d)?
+        );
         Ok((out, lx.shape().clone()))
     }
 
@@ -263,25 +247,11 @@ impl CustomOp3 for ExactGroupNormBackward {
         ld: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let d = Dims::of(lx, self.0.groups, self.0.eps)?;
-        let out = match (sx, sg, sd) {
-            (CpuStorage::F32(x), CpuStorage::F32(g), CpuStorage::F32(dy)) => {
-                CpuStorage::F32(backward(
-                    contiguous(x, lx)?,
-                    contiguous(g, lg)?,
-                    contiguous(dy, ld)?,
-                    d,
-                )?)
-            }
-            (CpuStorage::F64(x), CpuStorage::F64(g), CpuStorage::F64(dy)) => {
-                CpuStorage::F64(backward(
-                    contiguous(x, lx)?,
-                    contiguous(g, lg)?,
-                    contiguous(dy, ld)?,
-                    d,
-                )?)
-            }
-            _ => candle_core::bail!("group norm backward: unsupported dtype {:?}", sx.dtype()),
-        };
+        let out = float_storages!(
+            "group norm backward",
+            [(x, sx, lx), (g, sg, lg), (dy, sd, ld)],
+            backward(x, g, dy, d)?
+        );
         Ok((out, lx.shape().clone()))
     }
 }
@@ -296,10 +266,7 @@ pub fn group_norm_exact(
     groups: usize,
     eps: f64,
 ) -> Result<Tensor> {
-    let fused = x.device().is_cpu()
-        && matches!(x.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
-        && !gamma.track_op()
-        && !beta.track_op();
+    let fused = super::fused_on(x) && !gamma.track_op() && !beta.track_op();
     if !fused {
         use candle_core::Module;
         let c = x.dim(1)?;

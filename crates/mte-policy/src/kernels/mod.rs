@@ -8,6 +8,30 @@
 //! differences in their tests). On other devices every function here falls back to candle's
 //! own ops, so a CUDA build needs no change.
 
+/// Matches storages of one float type (all f32 or all f64), binds each name to its
+/// contiguous slice and wraps `$body`'s vector in a storage of that type; any other dtype, or
+/// a mix, is an error naming `$what` and the dtypes. The kernels' dtype dispatch, written
+/// once.
+macro_rules! float_storages {
+    ($what:expr, [$(($name:ident, $s:expr, $l:expr)),+], $body:expr) => {
+        match ($($s,)+) {
+            ($(candle_core::CpuStorage::F32($name),)+) => {
+                $(let $name = $crate::kernels::contiguous($name, $l)?;)+
+                candle_core::CpuStorage::F32($body)
+            }
+            ($(candle_core::CpuStorage::F64($name),)+) => {
+                $(let $name = $crate::kernels::contiguous($name, $l)?;)+
+                candle_core::CpuStorage::F64($body)
+            }
+            _ => candle_core::bail!(
+                "{}: unsupported dtypes {:?}",
+                $what,
+                [$(candle_core::backend::BackendStorage::dtype($s)),+]
+            ),
+        }
+    };
+}
+
 mod activation;
 mod batch;
 mod conv;
@@ -32,6 +56,11 @@ fn contiguous<'a, T>(data: &'a [T], layout: &Layout) -> Result<&'a [T]> {
         Some((start, end)) => Ok(&data[start..end]),
         None => candle_core::bail!("mte kernels need contiguous inputs"),
     }
+}
+
+/// Whether the fused kernels take `x`: a CPU tensor of f32 or f64.
+fn fused_on(x: &candle_core::Tensor) -> bool {
+    x.device().is_cpu() && matches!(x.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
 }
 
 /// A float element the kernels compute in (f32 and f64; arithmetic in f64).

@@ -5,8 +5,7 @@
 //! `y = γ_c x̂ + β_c`. Backward, with `n` elements per group and `ĝ = γ_c · dy`:
 //! `dx = (ĝ - mean(ĝ) - x̂ · mean(ĝ x̂)) / sqrt(σ² + ε)`, `dγ_c = Σ dy x̂`, `dβ_c = Σ dy`.
 
-use super::{Float, contiguous};
-use candle_core::backend::BackendStorage;
+use super::Float;
 use candle_core::{CpuStorage, CustomOp3, Layout, Module, Result, Shape, Tensor};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
@@ -149,25 +148,11 @@ impl CustomOp3 for GroupNormOp {
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let d = Dims::of(l1, self.groups, self.eps)?;
-        let out = match (s1, s2, s3) {
-            (CpuStorage::F32(x), CpuStorage::F32(g), CpuStorage::F32(b)) => {
-                CpuStorage::F32(forward(
-                    contiguous(x, l1)?,
-                    contiguous(g, l2)?,
-                    contiguous(b, l3)?,
-                    d,
-                ))
-            }
-            (CpuStorage::F64(x), CpuStorage::F64(g), CpuStorage::F64(b)) => {
-                CpuStorage::F64(forward(
-                    contiguous(x, l1)?,
-                    contiguous(g, l2)?,
-                    contiguous(b, l3)?,
-                    d,
-                ))
-            }
-            _ => candle_core::bail!("group_norm: unsupported dtype {:?}", s1.dtype()),
-        };
+        let out = float_storages!(
+            "group_norm",
+            [(x, s1, l1), (g, s2, l2), (b, s3, l3)],
+            forward(x, g, b, d)
+        );
         Ok((out, l1.shape().clone()))
     }
 
@@ -207,25 +192,11 @@ impl CustomOp3 for GroupNormBwd {
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let d = Dims::of(l1, self.0.groups, self.0.eps)?;
-        let out = match (s1, s2, s3) {
-            (CpuStorage::F32(x), CpuStorage::F32(g), CpuStorage::F32(dy)) => {
-                CpuStorage::F32(backward(
-                    contiguous(x, l1)?,
-                    contiguous(g, l2)?,
-                    contiguous(dy, l3)?,
-                    d,
-                ))
-            }
-            (CpuStorage::F64(x), CpuStorage::F64(g), CpuStorage::F64(dy)) => {
-                CpuStorage::F64(backward(
-                    contiguous(x, l1)?,
-                    contiguous(g, l2)?,
-                    contiguous(dy, l3)?,
-                    d,
-                ))
-            }
-            _ => candle_core::bail!("group_norm backward: unsupported dtype {:?}", s1.dtype()),
-        };
+        let out = float_storages!(
+            "group_norm backward",
+            [(x, s1, l1), (g, s2, l2), (dy, s3, l3)],
+            backward(x, g, dy, d)
+        );
         let len = l1.shape().elem_count() + 2 * d.c;
         Ok((out, Shape::from(len)))
     }

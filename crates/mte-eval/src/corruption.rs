@@ -173,6 +173,12 @@ pub enum SensorFault {
     Patch {
         /// The patch directory.
         path: std::path::PathBuf,
+        /// The attacker's optimiser step size this patch was trained with (`patch.json`'s
+        /// `step`), declared in the spec to place the cell on a step-size axis (the paper's
+        /// patch curves): the cell's [`budget`](SensorFault::budget). The runner refuses a
+        /// declared step that differs from the file's. `None` (controls, or no curve): no
+        /// budget.
+        step: Option<f64>,
     },
 }
 
@@ -270,6 +276,21 @@ impl Fault {
         }
     }
 
+    /// What [`budget`](Self::budget) measures, with its unit: a plot's axis label.
+    pub fn budget_axis(&self) -> &'static str {
+        match self {
+            Self::Sensor(SensorFault::Occluder { .. }) => "occluder side (px)",
+            Self::Sensor(SensorFault::MotionBlur { .. }) => "blur length (px or steps)",
+            Self::Sensor(SensorFault::GaussianNoise { .. }) => "noise sigma",
+            Self::Sensor(SensorFault::Patch { .. }) => "patch optimiser step size",
+            Self::Query(QueryAttack::Pgd(_)) => "PGD iterations",
+            Self::Candidates(CandidateCorruption::CommonMode { .. }) => {
+                "common-mode magnitude (action units)"
+            }
+            _ => "attack budget",
+        }
+    }
+
     /// Strength on the fault's natural axis, for plots against attack budget.
     pub fn budget(&self) -> Option<f64> {
         match self {
@@ -319,7 +340,8 @@ impl SensorFault {
             Self::Occluder { size } => Some(size as f64),
             Self::MotionBlur { length } => Some(length as f64),
             Self::GaussianNoise { sigma } => Some(sigma),
-            Self::Blank | Self::Stale | Self::Frozen | Self::Patch { .. } => None,
+            Self::Patch { step, .. } => step,
+            Self::Blank | Self::Stale | Self::Frozen => None,
         }
     }
 
@@ -335,6 +357,13 @@ impl SensorFault {
             Self::GaussianNoise { sigma } if !(sigma.is_finite() && sigma >= 0.0) => Err(
                 CorruptionError::new("fault.sigma", sigma, "a finite value >= 0"),
             ),
+            Self::Patch {
+                step: Some(step), ..
+            } if !(step.is_finite() && step > 0.0) => Err(CorruptionError::new(
+                "fault.step",
+                step,
+                "a finite step size > 0 (the patch's patch.json `step`)",
+            )),
             _ => Ok(()),
         }
     }
@@ -388,7 +417,7 @@ impl fmt::Display for SensorFault {
             Self::Occluder { size } => write!(f, "occluder-{size}"),
             Self::MotionBlur { length } => write!(f, "blur-{length}"),
             Self::GaussianNoise { sigma } => write!(f, "noise-{sigma}"),
-            Self::Patch { path } => write!(
+            Self::Patch { path, .. } => write!(
                 f,
                 "patch-{}",
                 path.file_name().map_or_else(
@@ -435,6 +464,8 @@ mod wire {
         Pgd(mte_policy::PgdConfig),
         Patch {
             path: std::path::PathBuf,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            step: Option<f64>,
         },
         Oracle {
             mode: OracleMode,
@@ -451,7 +482,7 @@ mod wire {
                 FaultWire::Occluder { size } => S::Occluder { size }.into(),
                 FaultWire::MotionBlur { length } => S::MotionBlur { length }.into(),
                 FaultWire::GaussianNoise { sigma } => S::GaussianNoise { sigma }.into(),
-                FaultWire::Patch { path } => S::Patch { path }.into(),
+                FaultWire::Patch { path, step } => S::Patch { path, step }.into(),
                 FaultWire::Pgd(c) => Q::Pgd(c).into(),
                 FaultWire::CommonMode {
                     magnitude,
@@ -479,7 +510,7 @@ mod wire {
                     S::Occluder { size } => Self::Occluder { size },
                     S::MotionBlur { length } => Self::MotionBlur { length },
                     S::GaussianNoise { sigma } => Self::GaussianNoise { sigma },
-                    S::Patch { path } => Self::Patch { path },
+                    S::Patch { path, step } => Self::Patch { path, step },
                 },
                 Fault::Query(Q::Pgd(c)) => Self::Pgd(c),
                 Fault::Candidates(C::CommonMode {
@@ -906,6 +937,7 @@ mod tests {
         let patch = mte_sim::Patch::new(vec![7; 12], 2, [256.0, 256.0]).expect("patch");
         let fault = SensorFault::Patch {
             path: "p/my-patch".into(),
+            step: None,
         };
         assert_eq!(Fault::from(fault.clone()).to_string(), "patch-my-patch");
         let mut c = ObservationCorruptor::with_patch(fault, patch);
@@ -971,6 +1003,32 @@ mod tests {
                 .validate()
                 .is_err()
         );
+    }
+
+    #[test]
+    fn a_patch_s_declared_step_is_its_budget_and_leaves_its_id_alone() {
+        let parse = |j: &str| serde_json::from_str::<Fault>(j).map_err(|e| e.to_string());
+        let bare = parse(r#"{"kind":"patch","path":"p/sign"}"#).expect("bare");
+        let stepped = parse(r#"{"kind":"patch","path":"p/sign","step":1.5e-3}"#).expect("step");
+        assert_eq!((bare.budget(), stepped.budget()), (None, Some(1.5e-3)));
+        assert_eq!(
+            bare.to_string(),
+            stepped.to_string(),
+            "the cell id is the path's"
+        );
+        // Written back without a `step` where there is none, so old specs round-trip.
+        let j = serde_json::to_string(&bare).expect("json");
+        assert!(!j.contains("step"), "{j}");
+        let j = serde_json::to_string(&stepped).expect("json");
+        assert_eq!(parse(&j), Ok(stepped));
+        for bad in [0.0, -1e-3, f64::NAN, f64::INFINITY] {
+            let f = SensorFault::Patch {
+                path: "p".into(),
+                step: Some(bad),
+            };
+            let e = f.validate().expect_err("a bad step");
+            assert!(e.to_string().contains("fault.step"), "{e}");
+        }
     }
 
     #[test]

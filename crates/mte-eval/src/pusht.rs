@@ -895,6 +895,12 @@ impl<'e, 's> Episode<'e, 's> {
     }
 }
 
+/// Whether a spec's declared patch step names the file's: equal to a relative 1e-9, so a
+/// spec may write the step as a decimal (`1.5e-3`) that round-trips through JSON.
+fn same_step(declared: f64, file: f64) -> bool {
+    (declared - file).abs() <= 1e-9 * declared.abs().max(file.abs())
+}
+
 /// The arm's observation corruptor, if its fault is a sensor fault (a patch is loaded and
 /// checked against the frame here, not per frame).
 fn observation_corruptor(
@@ -903,7 +909,7 @@ fn observation_corruptor(
     let Some(fault) = spec.corruption.fault.sensor() else {
         return Ok(None);
     };
-    let SensorFault::Patch { path } = fault else {
+    let SensorFault::Patch { path, step } = fault else {
         return Ok(Some(ObservationCorruptor::new(fault.clone())));
     };
     let Some((w, h)) = spec.needs.image else {
@@ -918,8 +924,21 @@ fn observation_corruptor(
         value: path.display().to_string(),
         expected: e,
     };
-    let (_, patch) =
+    let (meta, patch) =
         crate::patch_file::load(path).map_err(|e| bad_path(format!("a patch directory ({e})")))?;
     patch.origin(w, h).map_err(|e| bad_path(e.to_string()))?;
+    if let Some(step) = *step
+        && !same_step(step, meta.step)
+    {
+        return Err(RolloutError::Config {
+            field: "fault.step",
+            value: step.to_string(),
+            expected: format!(
+                "the step size {} that {} was trained with (patch.json)",
+                meta.step,
+                path.display()
+            ),
+        });
+    }
     Ok(Some(ObservationCorruptor::with_patch(fault.clone(), patch)))
 }

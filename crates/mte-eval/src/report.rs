@@ -1499,7 +1499,7 @@ fn clean_of(cells: &[CellData<'_>], ci: usize) -> Option<usize> {
 mod tests {
     use super::render::{html_inline, s3};
     use super::*;
-    use crate::corruption::{CorruptionSpec, Schedule, SensorFault};
+    use crate::corruption::{CorruptionSpec, Fault, Schedule, SensorFault};
     use crate::record::RUN_FORMAT;
     use mte_ensemble::bracket::RegimeTally;
 
@@ -2468,7 +2468,7 @@ mod tests {
             .iter()
             .find(|p| p.name.starts_with("recovered-"))
             .unwrap();
-        assert_eq!(p.spec.x_label, "attack budget");
+        assert_eq!(p.spec.x_label, "occluder side (px)");
         assert!(!p.spec.integer_x);
         let xs: Vec<f64> = p.spec.series[0].points.iter().map(|q| q.x).collect();
         assert_eq!(xs, [16.0, 24.0]);
@@ -2486,6 +2486,78 @@ mod tests {
                 .filter(|p| p.name.starts_with("coverage-"))
                 .count(),
             2
+        );
+    }
+
+    /// Two attack kinds with budgets on one policy: Figure 1 puts both curves on one axis of
+    /// effort relative to each curve's smallest budget, with the values of their own plots.
+    #[test]
+    fn figure_one_puts_every_budget_curve_on_one_relative_axis() {
+        let mut m = manifest();
+        let burst = |fault: Fault| CorruptionSpec {
+            fault,
+            schedule: Schedule::Burst {
+                q: 2,
+                phase: 0,
+                period: None,
+            },
+        };
+        let occ = |size| burst(SensorFault::Occluder { size }.into());
+        let blur = |length| burst(SensorFault::MotionBlur { length }.into());
+        m.cells[1] = cell("occ-24", occ(24));
+        m.cells[2] = cell("occ-16", occ(16));
+        m.cells.push(cell("blur-8", blur(8)));
+        m.cells.push(cell("blur-2", blur(2)));
+        let mut out: Vec<Line> = Vec::new();
+        for l in lines().into_iter().filter(|l| !matches!(l, Line::Error(_))) {
+            if let Line::Episode(e) = &l {
+                let twin = match e.cell.as_str() {
+                    Q1 => Some(("occ-24", "blur-8")),
+                    Q2 => Some(("occ-16", "blur-2")),
+                    _ => None,
+                };
+                if let Some((a, b)) = twin {
+                    for id in [a, b] {
+                        let mut e = e.clone();
+                        e.cell = id.into();
+                        out.push(Line::Episode(e));
+                    }
+                    continue;
+                }
+            }
+            out.push(l);
+        }
+        let r = build(&m, &out, &ReportOptions::default()).unwrap();
+        let plot = |prefix: &str| {
+            r.plots
+                .iter()
+                .find(|p| p.name.starts_with(prefix))
+                .unwrap_or_else(|| panic!("no plot {prefix}*"))
+        };
+        let fig = plot("figure-1-pusht_keypoints");
+        let series = |label: &str| {
+            fig.spec
+                .series
+                .iter()
+                .find(|s| s.label == label)
+                .unwrap_or_else(|| panic!("no series {label}"))
+        };
+        let (o, b) = (
+            series("median, occluder, h = 2"),
+            series("median, motion-blur, h = 2"),
+        );
+        let xs = |s: &Series| s.points.iter().map(|p| p.x).collect::<Vec<_>>();
+        assert_eq!((xs(o), xs(b)), (vec![1.0, 1.5], vec![1.0, 4.0]));
+        let own = &plot("recovered-pusht_keypoints-occluder").spec.series[0];
+        let ys = |s: &Series| s.points.iter().map(|p| (p.y, p.err)).collect::<Vec<_>>();
+        assert_eq!(ys(o), ys(own));
+        assert!(!fig.spec.log_x, "a factor of 4 stays linear");
+        assert_eq!(
+            r.plots
+                .iter()
+                .filter(|p| p.name.starts_with("figure-1"))
+                .count(),
+            1
         );
     }
 

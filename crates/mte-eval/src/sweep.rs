@@ -797,7 +797,7 @@ pub fn resolve_policies(spec: &mut SweepSpec, base: &Path) {
         }
     }
     for c in &mut spec.corruptions {
-        if let Fault::Sensor(SensorFault::Patch { path }) = &mut c.fault
+        if let Fault::Sensor(SensorFault::Patch { path, .. }) = &mut c.fault
             && let Some(r) = resolve(path)
         {
             *path = r;

@@ -225,6 +225,7 @@ fn a_patch_needs_an_image_policy_and_an_existing_patch() {
     let c = CorruptionSpec {
         fault: Fault::Sensor(SensorFault::Patch {
             path: "no/such/patch".into(),
+            step: None,
         }),
         schedule: mte_eval::corruption::Schedule::Dense { start: 0, end: 5 },
     };
@@ -241,6 +242,53 @@ fn a_patch_needs_an_image_policy_and_an_existing_patch() {
     };
     let e = run_episode(&Scripted::new(0.0), &s).expect_err("missing patch directory");
     assert!(e.to_string().contains("no/such/patch"), "{e}");
+}
+
+#[test]
+fn a_declared_patch_step_must_be_the_file_s() -> TestResult {
+    use mte_eval::patch_file::{PatchMeta, save};
+    use mte_policy::patch::{PatchConfig, PatchReport};
+    let dir = tempfile::tempdir()?;
+    let cfg = PatchConfig {
+        step: 5e-4,
+        ..PatchConfig::default()
+    };
+    let report = PatchReport {
+        texture: vec![0.5; 3 * 4 * 4],
+        side: 4,
+        origin: (10, 20),
+        initial_loss: 0.1,
+        epoch_loss: vec![0.2],
+    };
+    let meta = PatchMeta::new(&cfg, &report, [112.0, 112.0], [96, 96], dir.path());
+    save(dir.path(), &meta, &[128; 3 * 4 * 4])?;
+    let run = |step: Option<f64>| {
+        let c = CorruptionSpec {
+            fault: Fault::Sensor(SensorFault::Patch {
+                path: dir.path().to_path_buf(),
+                step,
+            }),
+            schedule: Schedule::Dense { start: 0, end: 5 },
+        };
+        let s = EpisodeSpec {
+            needs: ObsNeeds {
+                image: Some((96, 96)),
+                ..NEEDS
+            },
+            max_steps: 12,
+            ..spec(Execution::OpenLoop, &c, 2)
+        };
+        run_episode(&Scripted::new(0.0), &s).map(|_| ())
+    };
+    let e = run(Some(1e-4)).expect_err("1e-4 declared, 5e-4 trained");
+    let msg = e.to_string();
+    assert!(
+        msg.contains("fault.step") && msg.contains("0.0005"),
+        "{msg}"
+    );
+    run(Some(5e-4))?;
+    run(None)?;
+    Ok(())
 }
 
 #[test]

@@ -25,9 +25,10 @@ pub fn alignment(cli: &Cli, a: &crate::args::AlignmentArgs) -> Result<()> {
             ..mte_policy::PgdConfig::default()
         })),
         (AlignmentFault::Blank, _) => Fault::Sensor(SensorFault::Blank),
-        (AlignmentFault::Patch, Some(path)) => {
-            Fault::Sensor(SensorFault::Patch { path: path.clone() })
-        }
+        (AlignmentFault::Patch, Some(path)) => Fault::Sensor(SensorFault::Patch {
+            path: path.clone(),
+            step: None,
+        }),
         (AlignmentFault::Patch, None) => anyhow::bail!("--fault patch needs --patch DIR"),
     };
     let corruption = CorruptionSpec {

@@ -113,6 +113,7 @@ fn coverage_plots(
             x_label: x_label.clone(),
             y_label: "mean max coverage (± SE)".into(),
             integer_x: true,
+            log_x: false,
             y_include: (0.0, 1.0),
             y_refs: vec![],
             series: cov,
@@ -123,6 +124,7 @@ fn coverage_plots(
             x_label,
             y_label: "success rate (± binomial SE)".into(),
             integer_x: true,
+            log_x: false,
             y_include: (0.0, 1.0),
             y_refs: vec![],
             series: succ,
@@ -152,6 +154,7 @@ fn recovered_plots(
         }
     }
     let row_of = |ci: usize| main.iter().find(|r| r.cell == cells[ci].spec.id);
+    let mut curves: Vec<Curve> = Vec::new();
     for ((policy, kind, h), members) in &groups {
         let budgeted: Vec<usize> = members
             .iter()
@@ -207,6 +210,19 @@ fn recovered_plots(
         if series.is_empty() {
             continue;
         }
+        let budgets: Vec<f64> = used
+            .iter()
+            .map(|&ci| axis_x(cells[ci].spec, true))
+            .collect();
+        let log_x = by_budget && spans_decades(&budgets);
+        if by_budget {
+            curves.push(Curve {
+                policy: policy.clone(),
+                kind: format!("{kind}, h = {h}"),
+                base: budgets.iter().copied().fold(f64::INFINITY, f64::min),
+                series: series.clone(),
+            });
+        }
         let label = policy_label(policy);
         specs.push(PlotSpec {
             name: unique(
@@ -215,18 +231,98 @@ fn recovered_plots(
             ),
             title: format!("Recovered fraction vs {baseline}, {label}: {kind}, h = {h}"),
             x_label: if by_budget {
-                "attack budget".into()
+                cells[used[0]].spec.corruption.fault.budget_axis().into()
             } else {
                 "q (corrupted queries per period)".into()
             },
             y_label: "recovered fraction (± paired jackknife SE)".into(),
             integer_x: !by_budget,
+            log_x,
             y_include: (0.0, 1.0),
             y_refs: vec![0.0, 1.0],
             series,
         });
     }
+    let mut policies: Vec<&str> = Vec::new();
+    for c in &curves {
+        if !policies.contains(&c.policy.as_str()) {
+            policies.push(&c.policy);
+        }
+    }
+    for policy in policies {
+        let own: Vec<&Curve> = curves.iter().filter(|c| c.policy == policy).collect();
+        if own.len() >= 2 {
+            specs.push(figure_one(ctx.baseline, policy, &own, taken));
+        }
+    }
     Ok(specs)
+}
+
+/// One budget curve of a policy's recovered-fraction plots (with the defence's series where
+/// the report has one), for Figure 1.
+struct Curve {
+    policy: String,
+    /// Fault kind and stride (`pgd, h = 2`).
+    kind: String,
+    /// The curve's smallest budget: its attack's own baseline effort.
+    base: f64,
+    series: Vec<Series>,
+}
+
+/// The paper's Figure 1 as one plot: every budget curve of one policy with two or more
+/// (the rank statistics' series and, on the undefended policy of a defence table, the
+/// defence's, one curve per attack kind and stride) against optimisation effort relative
+/// to each attack's own baseline (its curve's smallest budget: PGD iterations, patch step
+/// size), on a logarithmic axis where the efforts span a decade.
+fn figure_one(
+    baseline: &str,
+    policy: &str,
+    curves: &[&Curve],
+    taken: &mut HashSet<String>,
+) -> PlotSpec {
+    let series: Vec<Series> = curves
+        .iter()
+        .flat_map(|c| {
+            c.series.iter().map(|s| Series {
+                label: format!("{}, {}", s.label, c.kind),
+                points: s
+                    .points
+                    .iter()
+                    .map(|p| Point {
+                        x: p.x / c.base,
+                        ..*p
+                    })
+                    .collect(),
+            })
+        })
+        .collect();
+    let xs: Vec<f64> = series
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| p.x))
+        .collect();
+    let label = policy_label(policy);
+    PlotSpec {
+        name: unique(taken, format!("figure-1-{}", slug(label))),
+        title: format!("Recovered fraction vs {baseline} against optimisation effort, {label}"),
+        x_label: "optimisation effort relative to the attack's own baseline (x)".into(),
+        y_label: "recovered fraction (± paired jackknife SE)".into(),
+        integer_x: false,
+        log_x: spans_decades(&xs),
+        y_include: (0.0, 1.0),
+        y_refs: vec![0.0, 1.0],
+        series,
+    }
+}
+
+/// Whether positive values span at least a factor of 10 (a logarithmic axis then reads
+/// better).
+fn spans_decades(xs: &[f64]) -> bool {
+    let (lo, hi) = xs
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &x| {
+            (lo.min(x), hi.max(x))
+        });
+    lo > 0.0 && hi.is_finite() && hi / lo >= 10.0
 }
 
 /// The recovered fraction of `arm` against `baseline` on cell `ci` at `x`, where the main

@@ -61,6 +61,9 @@ pub(super) struct PlotSpec {
     pub y_label: String,
     /// The x axis counts something (q): labels are integers.
     pub integer_x: bool,
+    /// The x axis is logarithmic (budgets spanning decades: PGD iterations, step sizes);
+    /// every x must then be > 0.
+    pub log_x: bool,
     /// A y range the axis always includes (e.g. `[0, 1]` for coverage).
     pub y_include: (f64, f64),
     /// A horizontal reference line (e.g. 0 and 1 for a recovered fraction).
@@ -69,6 +72,19 @@ pub(super) struct PlotSpec {
 }
 
 impl PlotSpec {
+    /// The spec as drawn: on a logarithmic axis, every x replaced by its `log10` (the
+    /// ticks print `10^x` back).
+    fn drawn(&self) -> std::borrow::Cow<'_, Self> {
+        if !self.log_x {
+            return std::borrow::Cow::Borrowed(self);
+        }
+        let mut d = self.clone();
+        for p in d.series.iter_mut().flat_map(|s| s.points.iter_mut()) {
+            p.x = p.x.log10();
+        }
+        std::borrow::Cow::Owned(d)
+    }
+
     fn points(&self) -> impl Iterator<Item = &Point> {
         self.series.iter().flat_map(|s| s.points.iter())
     }
@@ -171,6 +187,23 @@ impl Plot {
     }
 }
 
+/// Formats a label of a logarithmic axis at drawn position `v` (`log10` of the value):
+/// the value with two significant digits, in exponent form below 0.01.
+fn log_tick(v: f64) -> String {
+    let x = 10f64.powf(v);
+    if !(x.is_finite() && x > 0.0) {
+        String::new()
+    } else if x < 0.01 {
+        let e = format!("{x:.1e}");
+        let (m, exp) = e.split_once('e').unwrap_or((e.as_str(), "0"));
+        format!("{}e{exp}", m.trim_end_matches('0').trim_end_matches('.'))
+    } else if x < 10.0 {
+        tick(x, false)
+    } else {
+        format!("{x:.0}")
+    }
+}
+
 /// Formats an axis label: integers for counting axes, else a short decimal.
 fn tick(v: f64, integer: bool) -> String {
     if integer {
@@ -191,6 +224,8 @@ fn draw<DB: DrawingBackend>(
     spec: &PlotSpec,
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
     root.fill(&WHITE)?;
+    let log = spec.log_x;
+    let spec = &*spec.drawn();
     let ((x0, x1), (y0, y1)) = spec.ranges();
     let mut chart = ChartBuilder::on(root)
         .caption(&spec.title, (FAMILY, 20))
@@ -199,7 +234,7 @@ fn draw<DB: DrawingBackend>(
         .y_label_area_size(60)
         .build_cartesian_2d(x0..x1, y0..y1)?;
     let integer = spec.integer_x;
-    let x_fmt = move |v: &f64| tick(*v, integer);
+    let x_fmt = move |v: &f64| if log { log_tick(*v) } else { tick(*v, integer) };
     let y_fmt = |v: &f64| tick(*v, false);
     chart
         .configure_mesh()
@@ -271,6 +306,44 @@ mod tests {
         assert_eq!(tick(0.25, false), "0.25");
         assert_eq!(tick(1.0, false), "1");
         assert_eq!(tick(-0.001, false), "0");
+        assert_eq!(log_tick(-4.0), "1e-4");
+        assert_eq!(log_tick(5e-4f64.log10()), "5e-4");
+        assert_eq!(log_tick(1.5e-3f64.log10()), "1.5e-3");
+        assert_eq!(log_tick(0.5f64.log10()), "0.5");
+        assert_eq!(log_tick(1.0), "10");
+        assert_eq!(log_tick(200f64.log10()), "200");
+    }
+
+    #[test]
+    fn a_logarithmic_axis_draws_log10_of_x() {
+        let spec = PlotSpec {
+            name: "x".into(),
+            title: "t".into(),
+            x_label: "step".into(),
+            y_label: "y".into(),
+            integer_x: false,
+            log_x: true,
+            y_include: (0.0, 1.0),
+            y_refs: vec![],
+            series: vec![Series {
+                label: "a".into(),
+                points: [1e-4, 1e-2]
+                    .map(|x| Point {
+                        x,
+                        y: 0.5,
+                        err: None,
+                    })
+                    .to_vec(),
+            }],
+        };
+        let xs: Vec<f64> = spec.drawn().points().map(|p| p.x).collect();
+        assert!(
+            (xs[0] + 4.0).abs() < 1e-12 && (xs[1] + 2.0).abs() < 1e-12,
+            "{xs:?}"
+        );
+        let ((x0, x1), _) = spec.drawn().ranges();
+        assert!(x0 < -4.0 && -2.0 < x1 && x1 < 0.0, "{x0} {x1}");
+        assert!(Plot::new(spec).is_ok_and(|p| p.svg.contains("1e-4")));
     }
 
     #[test]
@@ -281,6 +354,7 @@ mod tests {
             x_label: "q".into(),
             y_label: "y".into(),
             integer_x: true,
+            log_x: false,
             y_include: (0.0, 0.0),
             y_refs: vec![],
             series: vec![Series {

@@ -40,6 +40,7 @@ pub fn roc_plots(rows: &[MonitorRow]) -> Result<Vec<Plot>, ReportError> {
                 x_label: "false positive rate (clean episodes)".into(),
                 y_label: "true positive rate (corrupted episodes)".into(),
                 integer_x: false,
+                log_x: false,
                 y_include: (0.0, 1.0),
                 y_refs: Vec::new(),
                 series,

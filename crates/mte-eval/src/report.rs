@@ -377,6 +377,9 @@ pub struct Recovered {
     /// paper's definition it does not count a clean-data gap between the arms as recovery.
     /// Defined where `coverage` is.
     pub coverage_own: Option<f64>,
+    /// Paired jackknife standard error of `coverage_own` (leave one seed out of the four
+    /// cells' common seeds); `None` where it is undefined.
+    pub coverage_own_se: Option<f64>,
     /// Why the coverage fraction is undefined, when it is.
     pub note: Option<String>,
     /// The test of the denominator: does the corruption lower the baseline at all?
@@ -1272,6 +1275,7 @@ fn recovered(eps: RecoveryEpisodes<'_, '_>, denominator: Option<Denominator>) ->
         seeds: 0,
         success: None,
         coverage_own: None,
+        coverage_own_se: None,
         note: Some(note.into()),
         denominator,
     };
@@ -1315,13 +1319,16 @@ fn recovered(eps: RecoveryEpisodes<'_, '_>, denominator: Option<Denominator>) ->
             recovered_fraction(mean(&sc), mean(&sb), mean(&so)).ok()
         })
         .flatten();
-    let coverage_own = coverage.and_then(|_| own_fraction(eps));
+    let (coverage_own, coverage_own_se) = coverage
+        .and_then(|_| own_fraction(eps))
+        .map_or((None, None), |(f, se)| (Some(f), se));
     Recovered {
         coverage,
         coverage_se,
         seeds: triples.len(),
         success,
         coverage_own,
+        coverage_own_se,
         note,
         denominator,
     }
@@ -1340,9 +1347,11 @@ fn not_meaningful(den: &Denominator) -> String {
 }
 
 /// `1 − (robust clean − robust) / (clean − baseline)` on mean max coverage, on the seeds that
-/// ran all four (both clean cells and both arms under the corruption); `None` without them or
-/// with a zero denominator.
-fn own_fraction(eps: RecoveryEpisodes<'_, '_>) -> Option<f64> {
+/// ran all four (both clean cells and both arms under the corruption), with its paired
+/// jackknife standard error where defined; `None` without such seeds or with a zero
+/// denominator. It is the paper's fraction with the robust arm's value shifted per seed by
+/// the clean gap, `robust − robust clean + clean`, so the jackknife is the paper fraction's.
+fn own_fraction(eps: RecoveryEpisodes<'_, '_>) -> Option<(f64, Option<f64>)> {
     let quads = same_seeds([eps.clean, eps.base, eps.other, eps.other_clean]);
     if quads.is_empty() {
         return None;
@@ -1350,7 +1359,19 @@ fn own_fraction(eps: RecoveryEpisodes<'_, '_>) -> Option<f64> {
     let n = quads.len() as f64;
     let mean = |i: usize| quads.iter().map(|q| q[i].max_coverage).sum::<f64>() / n;
     let base_loss = mean(0) - mean(1);
-    (base_loss != 0.0).then(|| 1.0 - (mean(3) - mean(2)) / base_loss)
+    if base_loss == 0.0 {
+        return None;
+    }
+    let own = 1.0 - (mean(3) - mean(2)) / base_loss;
+    let col = |i: usize| -> Vec<f64> { quads.iter().map(|q| q[i].max_coverage).collect() };
+    let shifted: Vec<f64> = quads
+        .iter()
+        .map(|q| q[2].max_coverage - q[3].max_coverage + q[0].max_coverage)
+        .collect();
+    let se = mte_stats::recovered_fraction_jackknife(&col(0), &col(1), &shifted)
+        .ok()
+        .map(|(_, se)| se);
+    Some((own, se))
 }
 
 fn focus_table(
@@ -1828,6 +1849,17 @@ mod tests {
         let want =
             1.0 - (mean(&CLEAN_MEDIAN) - mean(&Q1_MEDIAN)) / (mean(&CLEAN_EWM) - mean(&Q1_EWM));
         assert!((own - want).abs() < 1e-12, "{own} vs {want}");
+        // Its jackknife error, leaving each seed out of all four cells.
+        let loo: Vec<f64> = (0..8)
+            .map(|i| {
+                let m = |v: &[f64]| (v.iter().sum::<f64>() - v[i]) / 7.0;
+                1.0 - (m(&CLEAN_MEDIAN) - m(&Q1_MEDIAN)) / (m(&CLEAN_EWM) - m(&Q1_EWM))
+            })
+            .collect();
+        let lm = mean(&loo);
+        let se = (7.0 / 8.0 * loo.iter().map(|x| (x - lm).powi(2)).sum::<f64>()).sqrt();
+        let got = row(&r, Q1).recovered.coverage_own_se.unwrap();
+        assert!(se > 0.0 && (got - se).abs() < 1e-12, "{got} vs {se}");
         // The paired clean test beside it: median vs EWM on the clean cell.
         let k = row(&r, Q1).clean_comparison.as_ref().unwrap();
         let w = mte_stats::wilcoxon_signed_rank(&CLEAN_MEDIAN, &CLEAN_EWM).unwrap();
@@ -2479,6 +2511,19 @@ mod tests {
             mte_stats::recovered_fraction_jackknife(&CLEAN_EWM, &Q1_EWM, &Q1_MEDIAN).unwrap();
         assert_eq!(p.spec.series[0].points[1].err, Some(se));
         assert!(se > 0.0 && p.spec.series[0].points[0].err.is_some());
+        // Beside it, the fraction against the median's own clean value, as the table has it.
+        let own = p
+            .spec
+            .series
+            .iter()
+            .find(|s| s.label == "median, own clean")
+            .expect("own-clean series");
+        let rec = &row(&r, "occ-24").recovered;
+        assert_eq!(own.points[1].x, 24.0);
+        assert_eq!(
+            (Some(own.points[1].y), own.points[1].err),
+            (rec.coverage_own, rec.coverage_own_se)
+        );
         // Two occluder sizes: two coverage-against-q plots (one point each plus clean).
         assert_eq!(
             r.plots

@@ -181,7 +181,7 @@ fn recovered_plots(
             } else {
                 vec![String::new()]
             } {
-                let mut pts = Vec::new();
+                let (mut pts, mut own) = (Vec::new(), Vec::new());
                 for &ci in used {
                     let c = &cells[ci];
                     if (split && schedule_label(c.spec) != sched) || !c.has(arm) || !c.has(baseline)
@@ -189,20 +189,23 @@ fn recovered_plots(
                         continue;
                     }
                     let x = axis_x(c.spec, by_budget);
-                    if let Some(p) = recovered_point(cells, ci, row_of(ci), baseline, arm, x) {
+                    if let Some((p, o)) = recovered_point(cells, ci, row_of(ci), baseline, arm, x) {
                         pts.push(p);
+                        own.extend(o);
                     }
                 }
-                pts.sort_by(|a, b| a.x.total_cmp(&b.x));
-                if !pts.is_empty() {
-                    series.push(Series {
-                        label: if split {
-                            format!("{arm}, {sched}")
-                        } else {
-                            arm.clone()
-                        },
-                        points: pts,
-                    });
+                let label = if split {
+                    format!("{arm}, {sched}")
+                } else {
+                    arm.clone()
+                };
+                for (points, label) in [(pts, label.clone()), (own, format!("{label}, own clean"))]
+                {
+                    let mut points = points;
+                    points.sort_by(|a, b| a.x.total_cmp(&b.x));
+                    if !points.is_empty() {
+                        series.push(Series { label, points });
+                    }
                 }
             }
         }
@@ -329,8 +332,10 @@ fn spans_decades(xs: &[f64]) -> bool {
 /// table's denominator is significantly above zero: the report's own rule
 /// ([`super::recovered`]) on the seeds that ran the clean cell, the corrupted baseline and
 /// the arm, with its paired jackknife standard error (no error bar where the jackknife is
-/// undefined), so a plotted point is always the value a table prints. No point without a
-/// clean cell to pair with.
+/// undefined), so a plotted point is always the value a table prints; and beside it the
+/// fraction against the arm's own clean value, where defined, so that a clean-data gap
+/// between the arms shows on the figure as the distance between the two. No point without
+/// a clean cell to pair with.
 fn recovered_point(
     cells: &[CellData<'_>],
     ci: usize,
@@ -338,7 +343,7 @@ fn recovered_point(
     baseline: &str,
     arm: &str,
     x: f64,
-) -> Option<Point> {
+) -> Option<(Point, Option<Point>)> {
     let (row, cj) = (row?, clean_of(cells, ci)?);
     let (c, clean) = (&cells[ci], &cells[cj]);
     let rec = super::recovered(
@@ -351,11 +356,19 @@ fn recovered_point(
         row.recovered.denominator,
     );
     let y = rec.coverage.filter(|y| y.is_finite())?;
-    Some(Point {
+    let own = rec.coverage_own.filter(|y| y.is_finite()).map(|y| Point {
         x,
         y,
-        err: rec.coverage_se,
-    })
+        err: rec.coverage_own_se,
+    });
+    Some((
+        Point {
+            x,
+            y,
+            err: rec.coverage_se,
+        },
+        own,
+    ))
 }
 
 /// A cell's position on a recovered-fraction plot: its attack budget, or its `q` when the

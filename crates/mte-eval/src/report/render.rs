@@ -459,7 +459,7 @@ impl Report {
                         .as_ref()
                         .map_or_else(|| "—".into(), |k| f3(k.coverage.mean)),
                     fraction_se(&r.recovered),
-                    fr(r.recovered.coverage_own),
+                    own_se(&r.recovered),
                     fr(r.recovered.success),
                 ]
             })
@@ -905,6 +905,15 @@ pub(super) fn html_inline(s: &str) -> String {
 /// where undefined.
 pub(super) fn fraction_se(r: &Recovered) -> String {
     match (r.coverage, r.coverage_se) {
+        (Some(f), Some(se)) => format!("{f:.2} ± {se:.2}"),
+        (Some(f), None) => format!("{f:.2}"),
+        _ => "n/a".into(),
+    }
+}
+
+/// The fraction against the robust arm's own clean value, with its jackknife error.
+pub(super) fn own_se(r: &Recovered) -> String {
+    match (r.coverage_own, r.coverage_own_se) {
         (Some(f), Some(se)) => format!("{f:.2} ± {se:.2}"),
         (Some(f), None) => format!("{f:.2}"),
         _ => "n/a".into(),

@@ -2553,12 +2553,21 @@ mod tests {
         m.cells[2] = cell("occ-16", occ(16));
         m.cells.push(cell("blur-8", blur(8)));
         m.cells.push(cell("blur-2", blur(2)));
+        // A 1 px occluder that does nothing (the clean cell's episodes): no point, so the
+        // occluder curve's baseline effort stays 16 px.
+        m.cells.push(cell("occ-1", occ(1)));
         let mut out: Vec<Line> = Vec::new();
         for l in lines().into_iter().filter(|l| !matches!(l, Line::Error(_))) {
             if let Line::Episode(e) = &l {
                 let twin = match e.cell.as_str() {
                     Q1 => Some(("occ-24", "blur-8")),
                     Q2 => Some(("occ-16", "blur-2")),
+                    CLEAN => {
+                        let mut e = e.clone();
+                        e.cell = "occ-1".into();
+                        out.push(Line::Episode(e));
+                        None
+                    }
                     _ => None,
                 };
                 if let Some((a, b)) = twin {

@@ -213,16 +213,23 @@ fn recovered_plots(
         if series.is_empty() {
             continue;
         }
-        let budgets: Vec<f64> = used
+        // The budgets that have a point (a control at budget 0 has none: its denominator is
+        // not significant, or it would be an attack).
+        let xs: Vec<f64> = series
             .iter()
-            .map(|&ci| axis_x(cells[ci].spec, true))
+            .flat_map(|s| s.points.iter().map(|p| p.x))
             .collect();
-        let log_x = by_budget && spans_decades(&budgets);
-        if by_budget {
+        let log_x = by_budget && spans_decades(&xs);
+        let base = xs
+            .iter()
+            .copied()
+            .filter(|&x| x > 0.0)
+            .fold(f64::INFINITY, f64::min);
+        if by_budget && base.is_finite() {
             curves.push(Curve {
                 policy: policy.clone(),
                 kind: format!("{kind}, h = {h}"),
-                base: budgets.iter().copied().fold(f64::INFINITY, f64::min),
+                base,
                 series: series.clone(),
             });
         }
@@ -267,7 +274,7 @@ struct Curve {
     policy: String,
     /// Fault kind and stride (`pgd, h = 2`).
     kind: String,
-    /// The curve's smallest budget: its attack's own baseline effort.
+    /// The curve's smallest positive budget with a point: its attack's own baseline effort.
     base: f64,
     series: Vec<Series>,
 }

@@ -19,8 +19,15 @@ static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
 /// Font family every text of a plot uses.
 const FAMILY: &str = "sans-serif";
 
-/// Size of every plot in pixels.
+/// Size of a plot in pixels (its plotting area, with the legend inside it).
 pub(super) const SIZE: (u32, u32) = (720, 450);
+
+/// Width added on the right for the legend of a plot with more than [`INSIDE_LEGEND`]
+/// series, which would cover the data inside the plotting area.
+const LEGEND_WIDTH: u32 = 300;
+
+/// The most series whose legend is drawn inside the plotting area.
+const INSIDE_LEGEND: usize = 4;
 
 /// Line colours, in series order (Tableau 10).
 const PALETTE: [RGBColor; 10] = [
@@ -72,6 +79,20 @@ pub(super) struct PlotSpec {
 }
 
 impl PlotSpec {
+    /// Whether the legend goes in a panel right of the plotting area.
+    fn legend_outside(&self) -> bool {
+        self.series.len() > INSIDE_LEGEND
+    }
+
+    /// Size of the drawing in pixels: [`SIZE`], wider by the legend's panel where it has one.
+    pub(super) fn size(&self) -> (u32, u32) {
+        if self.legend_outside() {
+            (SIZE.0 + LEGEND_WIDTH, SIZE.1)
+        } else {
+            SIZE
+        }
+    }
+
     /// The spec as drawn: on a logarithmic axis, every x replaced by its `log10` (the
     /// ticks print `10^x` back).
     fn drawn(&self) -> std::borrow::Cow<'_, Self> {
@@ -152,7 +173,7 @@ impl Plot {
         ensure_font()?;
         let mut svg = String::new();
         {
-            let root = SVGBackend::with_string(&mut svg, SIZE).into_drawing_area();
+            let root = SVGBackend::with_string(&mut svg, spec.size()).into_drawing_area();
             draw(&root, &spec).map_err(|e| plot_error(&spec.name, e))?;
         }
         Ok(Self {
@@ -166,10 +187,10 @@ impl Plot {
     /// Rasterises the plot and encodes it as PNG.
     pub fn png(&self) -> Result<Vec<u8>, ReportError> {
         ensure_font()?;
-        let (w, h) = SIZE;
+        let (w, h) = self.spec.size();
         let mut rgb = vec![0u8; w as usize * h as usize * 3];
         {
-            let root = BitMapBackend::with_buffer(&mut rgb, SIZE).into_drawing_area();
+            let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
             draw(&root, &self.spec).map_err(|e| plot_error(&self.name, e))?;
         }
         let mut out = Vec::new();
@@ -224,6 +245,16 @@ fn draw<DB: DrawingBackend>(
     spec: &PlotSpec,
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
     root.fill(&WHITE)?;
+    let (area, panel) = if spec.legend_outside() {
+        let (a, p) = root.split_horizontally(SIZE.0);
+        (a, Some(p))
+    } else {
+        (root.clone(), None)
+    };
+    if let Some(panel) = &panel {
+        draw_legend(panel, spec)?;
+    }
+    let root = &area;
     let log = spec.log_x;
     let spec = &*spec.drawn();
     let ((x0, x1), (y0, y1)) = spec.ranges();
@@ -282,7 +313,7 @@ fn draw<DB: DrawingBackend>(
                 .map(|p| Circle::new((p.x, p.y), 3, color.filled())),
         )?;
     }
-    if !spec.series.is_empty() {
+    if !spec.series.is_empty() && panel.is_none() {
         chart
             .configure_series_labels()
             .position(SeriesLabelPosition::LowerLeft)
@@ -292,6 +323,29 @@ fn draw<DB: DrawingBackend>(
             .draw()?;
     }
     root.present()?;
+    Ok(())
+}
+
+/// The legend in its own panel: one row per series, its colour's line and its label.
+fn draw_legend<DB: DrawingBackend>(
+    panel: &DrawingArea<DB, Shift>,
+    spec: &PlotSpec,
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    let (top, row) = (48, 22);
+    for (i, s) in spec.series.iter().enumerate() {
+        let color = PALETTE[i % PALETTE.len()];
+        let y = top + row * i as i32;
+        panel.draw(&PathElement::new(
+            vec![(8, y), (30, y)],
+            color.stroke_width(2),
+        ))?;
+        panel.draw(&Circle::new((19, y), 3, color.filled()))?;
+        panel.draw(&Text::new(
+            s.label.clone(),
+            (38, y - 7),
+            (FAMILY, 13).into_font(),
+        ))?;
+    }
     Ok(())
 }
 
@@ -343,7 +397,29 @@ mod tests {
         );
         let ((x0, x1), _) = spec.drawn().ranges();
         assert!(x0 < -4.0 && -2.0 < x1 && x1 < 0.0, "{x0} {x1}");
-        assert!(Plot::new(spec).is_ok_and(|p| p.svg.contains("1e-4")));
+        assert!(Plot::new(spec.clone()).is_ok_and(|p| p.svg.contains("1e-4")));
+        // Five series: the legend moves to a panel on the right, every label drawn once.
+        let many = PlotSpec {
+            series: (0..5)
+                .map(|i| Series {
+                    label: format!("series-{i}"),
+                    ..spec.series[0].clone()
+                })
+                .collect(),
+            ..spec
+        };
+        assert_eq!(many.size(), (SIZE.0 + LEGEND_WIDTH, SIZE.1));
+        let p = Plot::new(many).expect("plot");
+        assert!(
+            p.svg
+                .contains(&format!("width=\"{}\"", SIZE.0 + LEGEND_WIDTH))
+        );
+        for i in 0..5 {
+            let n = p.svg.matches(&format!("series-{i}")).count();
+            assert_eq!(n, 1, "series-{i} drawn once, in the panel");
+        }
+        let png = p.png().expect("png");
+        assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
     }
 
     #[test]

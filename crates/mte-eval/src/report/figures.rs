@@ -141,7 +141,7 @@ fn recovered_plots(
     corrupted: &[usize],
     taken: &mut HashSet<String>,
 ) -> Result<Vec<PlotSpec>, ReportError> {
-    let (cells, baseline, main) = (ctx.cells, ctx.baseline, ctx.main);
+    let (cells, baseline) = (ctx.cells, ctx.baseline);
     let mut specs = Vec::new();
     // (b) Recovered fraction against the attack budget (or q), per (policy, fault kind, h).
     let mut groups: Vec<((String, String, usize), Vec<usize>)> = Vec::new();
@@ -153,7 +153,6 @@ fn recovered_plots(
             None => groups.push((key, vec![ci])),
         }
     }
-    let row_of = |ci: usize| main.iter().find(|r| r.cell == cells[ci].spec.id);
     let mut curves: Vec<Curve> = Vec::new();
     for ((policy, kind, h), members) in &groups {
         let budgeted: Vec<usize> = members
@@ -176,37 +175,14 @@ fn recovered_plots(
         let split = by_budget && schedules.len() > 1;
         let mut series: Vec<Series> = Vec::new();
         for arm in arms_of(cells, used).iter().filter(|a| *a != baseline) {
-            for sched in if split {
+            let scheds = if split {
                 schedules.clone()
             } else {
                 vec![String::new()]
-            } {
-                let (mut pts, mut own) = (Vec::new(), Vec::new());
-                for &ci in used {
-                    let c = &cells[ci];
-                    if (split && schedule_label(c.spec) != sched) || !c.has(arm) || !c.has(baseline)
-                    {
-                        continue;
-                    }
-                    let x = axis_x(c.spec, by_budget);
-                    if let Some((p, o)) = recovered_point(cells, ci, row_of(ci), baseline, arm, x) {
-                        pts.push(p);
-                        own.extend(o);
-                    }
-                }
-                let label = if split {
-                    format!("{arm}, {sched}")
-                } else {
-                    arm.clone()
-                };
-                for (points, label) in [(pts, label.clone()), (own, format!("{label}, own clean"))]
-                {
-                    let mut points = points;
-                    points.sort_by(|a, b| a.x.total_cmp(&b.x));
-                    if !points.is_empty() {
-                        series.push(Series { label, points });
-                    }
-                }
+            };
+            for sched in scheds {
+                let only = split.then_some(sched.as_str());
+                series.extend(arm_series(ctx, used, by_budget, arm, only));
             }
         }
         series.extend(defended_series(ctx, policy, used, by_budget));
@@ -253,19 +229,60 @@ fn recovered_plots(
             series,
         });
     }
+    specs.extend(figure_ones(baseline, &curves, taken));
+    Ok(specs)
+}
+
+/// The two series of one arm on a recovered-fraction plot over the cells `used` (only those
+/// of schedule `only`, where the plot splits by schedule): the paper's fraction and the
+/// fraction against the arm's own clean value, each sorted by x; empty series left out.
+fn arm_series(
+    ctx: &RecoveredCtx<'_, '_>,
+    used: &[usize],
+    by_budget: bool,
+    arm: &str,
+    only: Option<&str>,
+) -> Vec<Series> {
+    let (cells, baseline) = (ctx.cells, ctx.baseline);
+    let (mut pts, mut own) = (Vec::new(), Vec::new());
+    for &ci in used {
+        let c = &cells[ci];
+        if only.is_some_and(|s| schedule_label(c.spec) != s) || !c.has(arm) || !c.has(baseline) {
+            continue;
+        }
+        let row = ctx.main.iter().find(|r| r.cell == c.spec.id);
+        let x = axis_x(c.spec, by_budget);
+        if let Some((p, o)) = recovered_point(cells, ci, row, baseline, arm, x) {
+            pts.push(p);
+            own.extend(o);
+        }
+    }
+    let label = only.map_or_else(|| arm.to_string(), |s| format!("{arm}, {s}"));
+    [(pts, label.clone()), (own, format!("{label}, own clean"))]
+        .into_iter()
+        .filter(|(points, _)| !points.is_empty())
+        .map(|(mut points, label)| {
+            points.sort_by(|a, b| a.x.total_cmp(&b.x));
+            Series { label, points }
+        })
+        .collect()
+}
+
+/// Figure 1 for every policy with two or more budget curves, in the curves' order.
+fn figure_ones(baseline: &str, curves: &[Curve], taken: &mut HashSet<String>) -> Vec<PlotSpec> {
     let mut policies: Vec<&str> = Vec::new();
-    for c in &curves {
+    for c in curves {
         if !policies.contains(&c.policy.as_str()) {
             policies.push(&c.policy);
         }
     }
-    for policy in policies {
-        let own: Vec<&Curve> = curves.iter().filter(|c| c.policy == policy).collect();
-        if own.len() >= 2 {
-            specs.push(figure_one(ctx.baseline, policy, &own, taken));
-        }
-    }
-    Ok(specs)
+    policies
+        .into_iter()
+        .filter_map(|policy| {
+            let own: Vec<&Curve> = curves.iter().filter(|c| c.policy == policy).collect();
+            (own.len() >= 2).then(|| figure_one(baseline, policy, &own, taken))
+        })
+        .collect()
 }
 
 /// One budget curve of a policy's recovered-fraction plots (with the defence's series where

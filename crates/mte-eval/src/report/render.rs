@@ -904,7 +904,12 @@ pub(super) fn html_inline(s: &str) -> String {
 /// A recovered fraction on coverage with its paired standard error (`1.88 ± 0.61`), `n/a`
 /// where undefined.
 pub(super) fn fraction_se(r: &Recovered) -> String {
-    match (r.coverage, r.coverage_se) {
+    value_se(r.coverage, r.coverage_se)
+}
+
+/// A fraction with its standard error where it has one, "n/a" where it is undefined.
+fn value_se(v: Option<f64>, se: Option<f64>) -> String {
+    match (v, se) {
         (Some(f), Some(se)) => format!("{f:.2} ± {se:.2}"),
         (Some(f), None) => format!("{f:.2}"),
         _ => "n/a".into(),
@@ -913,11 +918,7 @@ pub(super) fn fraction_se(r: &Recovered) -> String {
 
 /// The fraction against the robust arm's own clean value, with its jackknife error.
 pub(super) fn own_se(r: &Recovered) -> String {
-    match (r.coverage_own, r.coverage_own_se) {
-        (Some(f), Some(se)) => format!("{f:.2} ± {se:.2}"),
-        (Some(f), None) => format!("{f:.2}"),
-        _ => "n/a".into(),
-    }
+    value_se(r.coverage_own, r.coverage_own_se)
 }
 
 /// A note when a defined fraction is computed on fewer seeds than the corrupted comparison

@@ -983,9 +983,13 @@ pub struct FinetuneArgs {
     /// Windows per batch.
     #[arg(long, default_value_t = 16)]
     pub batch_size: usize,
-    /// Regenerate the patch against the current encoder every step.
+    /// Regenerate the patch against the current encoder every step; the final patch is
+    /// saved as `OUT/patch` (a patch directory, as `mte attack patch` writes).
     #[arg(long)]
     pub regenerate: bool,
+    /// Sign-ascent step of the regeneration (pixel values in [0, 1]; requires --regenerate).
+    #[arg(long, value_name = "STEP", requires = "regenerate", default_value_t = 1.5e-3)]
+    pub regenerate_step: f64,
     /// Also save the policy every N steps, as `OUT/step-N` (for the clean-cost curve).
     #[arg(long, value_name = "N")]
     pub checkpoint_every: Option<usize>,

@@ -585,6 +585,36 @@ fn patch_finetune_and_probe_run_end_to_end() {
         ft["report"]["last_clean_drift"].as_f64().unwrap() >= 0.0,
         "{ft}"
     );
+    assert!(!p("tuned/patch").exists(), "a fixed patch is not saved again");
+    // Regenerating: the final patch is saved beside the encoder, in the same place as the
+    // patch it started from, and differs from it.
+    finetune("regen")
+        .args(["--quiet", "--steps", "2", "--batch-size", "4", "--regenerate"])
+        .args(["--regenerate-step", "0.05"])
+        .assert()
+        .success();
+    let regen: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(p("regen/patch/patch.json")).unwrap()).unwrap();
+    assert_eq!(
+        (&regen["origin"], &regen["side"], &regen["center"]),
+        (&meta["origin"], &meta["side"], &meta["center"])
+    );
+    assert_eq!(regen["regenerated"]["steps"], serde_json::json!(2));
+    assert_eq!(regen["regenerated"]["step"], serde_json::json!(0.05));
+    assert!(regen["regenerated"]["last_loss"].as_f64().unwrap() > 0.0, "{regen}");
+    assert_ne!(
+        fs::read(p("regen/patch/patch.png")).unwrap(),
+        fs::read(p("patch/patch.png")).unwrap(),
+        "regeneration moved the patch"
+    );
+    let ft: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(p("regen/finetune.json")).unwrap()).unwrap();
+    assert_eq!(ft["config"]["regenerate_step"], serde_json::json!(0.05));
+    finetune("regen0")
+        .args(["--regenerate-step", "0.05"])
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("--regenerate"));
     finetune("tuned0")
         .args(["--checkpoint-every", "0"])
         .assert()

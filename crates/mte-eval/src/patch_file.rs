@@ -88,6 +88,34 @@ pub struct PatchMeta {
     pub epoch_loss: Vec<f64>,
     /// Checkpoint attacked.
     pub policy: String,
+    /// Present when encoder fine-tuning carried the texture on (`mte defend finetune
+    /// --regenerate`); the fields above still describe the texture it started from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub regenerated: Option<Regeneration>,
+}
+
+/// How encoder fine-tuning regenerated a patch: before each fine-tuning step, one signed
+/// ascent step on the policy loss through the encoder being tuned, with the texture pasted
+/// at a position drawn uniformly in the frame (see `mte_policy::patch::finetune_encoder`).
+/// At evaluation the texture sits where the patch it started from sat.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Regeneration {
+    /// The patch directory it started from.
+    pub from: String,
+    /// The fine-tuned checkpoint: the encoder the last ascent step was taken against.
+    pub encoder: String,
+    /// Ascent steps taken (one per fine-tuning step).
+    pub steps: usize,
+    /// Ascent step size (the sign rule; pixel values in [0, 1]).
+    pub step: f64,
+    /// Windows per batch.
+    pub batch_size: usize,
+    /// Fine-tuning seed (windows, positions, noise and timesteps).
+    pub seed: u64,
+    /// Mean policy loss under the patch at the first and last up-to-100 ascent steps.
+    pub first_loss: f64,
+    /// See `first_loss`.
+    pub last_loss: f64,
 }
 
 impl PatchMeta {
@@ -116,6 +144,17 @@ impl PatchMeta {
             initial_loss: report.initial_loss,
             epoch_loss: report.epoch_loss.clone(),
             policy: policy.display().to_string(),
+            regenerated: None,
+        }
+    }
+
+    /// This patch's metadata for the texture that regeneration `r` made from it: the same
+    /// placement and training record, no longer a control.
+    pub fn regenerated(self, r: Regeneration) -> Self {
+        PatchMeta {
+            control: None,
+            regenerated: Some(r),
+            ..self
         }
     }
 }
@@ -398,6 +437,54 @@ mod tests {
         fs::write(dir.path().join(JSON), v.to_string()).expect("write");
         let (m, _) = load(dir.path()).expect("old file");
         assert_eq!((m.placement, m.control), (Placement::Fixed, None));
+        assert_eq!(m.regenerated, None, "a file without the field");
+    }
+
+    #[test]
+    fn a_regenerated_patch_keeps_its_place_and_records_the_regeneration() {
+        let (a, b, c) = (
+            tempfile::tempdir().expect("tmp"),
+            tempfile::tempdir().expect("tmp"),
+            tempfile::tempdir().expect("tmp"),
+        );
+        let report = PatchReport {
+            texture: vec![0.3; 3 * 6 * 6],
+            side: 6,
+            origin: (7, 9),
+            initial_loss: 0.1,
+            epoch_loss: vec![0.2],
+        };
+        let meta = PatchMeta::new(
+            &PatchConfig::default(),
+            &report,
+            [80.0, 420.0],
+            [96, 96],
+            Path::new("ck"),
+        );
+        save(a.path(), &meta, &report.rgb_u8()).expect("save");
+        // A control that regeneration carried on is no longer a control.
+        let grey = control(a.path(), b.path(), ControlKind::Grey).expect("grey");
+        let r = Regeneration {
+            from: b.path().display().to_string(),
+            encoder: "tuned".into(),
+            steps: 3000,
+            step: 1.5e-3,
+            batch_size: 16,
+            seed: 7,
+            first_loss: 0.09,
+            last_loss: 0.17,
+        };
+        let regen = grey.clone().regenerated(r.clone());
+        let rgb: Vec<u8> = (0..6 * 6 * 3).map(|i| (i * 7 % 256) as u8).collect();
+        save(c.path(), &regen, &rgb).expect("save regenerated");
+        let (m, p) = load(c.path()).expect("load regenerated");
+        assert_eq!(m, regen);
+        assert_eq!((m.control, m.regenerated), (None, Some(r)));
+        assert_eq!((m.origin, m.center, m.side), (grey.origin, grey.center, 6));
+        assert_eq!(p.rgb(), &rgb[..]);
+        // Only regenerated files carry the field.
+        let text = fs::read_to_string(b.path().join(JSON)).expect("read");
+        assert!(!text.contains("regenerated"), "{text}");
     }
 
     #[test]

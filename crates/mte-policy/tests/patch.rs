@@ -322,6 +322,12 @@ fn finetuning_changes_only_the_encoder_and_the_probe_is_neutral_on_itself() {
     assert!(r.encoder_tensors > 0);
     assert!(r.first_loss.is_finite() && r.last_consistency >= 0.0);
     assert_ne!(r.texture, texture, "regeneration moved the patch");
+    assert!(
+        r.first_patch_loss.is_some_and(f64::is_finite)
+            && r.last_patch_loss.is_some_and(|l| l > 0.0),
+        "{:?}",
+        (r.first_patch_loss, r.last_patch_loss)
+    );
     let after = snapshot(&vm);
     let mut encoder_changed = false;
     for ((k, a), (_, b)) in before.iter().zip(&after) {
@@ -444,6 +450,7 @@ fn the_clean_feature_term_holds_the_clean_embedding() {
         let (off, off_drift) = run(0.0, seed);
         let (on, on_drift) = run(10.0, seed);
         assert_eq!(off.first_clean_drift, None);
+        assert_eq!((off.first_patch_loss, on.last_patch_loss), (None, None));
         let (first, last) = (
             on.first_clean_drift.expect("on"),
             on.last_clean_drift.expect("on"),

@@ -259,6 +259,7 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
         clean_features: a.clean_features,
         batch_size: a.batch_size,
         regenerate: a.regenerate,
+        regenerate_step: a.regenerate_step,
         seed: a.seed,
         ..FinetuneConfig::default()
     };
@@ -295,6 +296,22 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
     )?;
     bar.finish();
     save(&a.out)?;
+    if let (true, Some(first_loss), Some(last_loss)) =
+        (cfg.regenerate, report.first_patch_loss, report.last_patch_loss)
+    {
+        let r = mte_eval::patch_file::Regeneration {
+            from: a.patch.display().to_string(),
+            encoder: a.out.display().to_string(),
+            steps: report.steps,
+            step: cfg.regenerate_step,
+            batch_size: cfg.batch_size,
+            seed: cfg.seed,
+            first_loss,
+            last_loss,
+        };
+        let rgb = mte_policy::patch::texture_to_rgb(&report.texture, meta.side);
+        mte_eval::patch_file::save(&a.out.join("patch"), &meta.regenerated(r), &rgb)?;
+    }
     let secs = t0.elapsed().as_secs_f64();
     let summary = serde_json::json!({
         "policy": a.policy, "patch": a.patch, "config": cfg, "report": {
@@ -304,6 +321,8 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
             "last_consistency": report.last_consistency,
             "first_clean_drift": report.first_clean_drift,
             "last_clean_drift": report.last_clean_drift,
+            "first_patch_loss": report.first_patch_loss,
+            "last_patch_loss": report.last_patch_loss,
         }, "seconds": secs,
     });
     std::fs::write(a.out.join("finetune.json"), format!("{summary:#}\n"))

@@ -497,6 +497,14 @@ pub struct FinetuneReport {
     pub first_clean_drift: Option<f64>,
     /// See `first_clean_drift`.
     pub last_clean_drift: Option<f64>,
+    /// Mean policy loss under the patch at the regeneration's ascent steps (before each
+    /// step's update of the patch) over the first and last up-to-100 steps; `None` when the
+    /// patch is not regenerated.
+    #[serde(default)]
+    pub first_patch_loss: Option<f64>,
+    /// See `first_patch_loss`.
+    #[serde(default)]
+    pub last_patch_loss: Option<f64>,
     /// The patch at the end (changed only when regenerating), `(3, side, side)`.
     pub texture: Vec<f32>,
 }
@@ -567,7 +575,8 @@ pub fn finetune_encoder(
         .then(|| frozen_copy(policy, varmap))
         .transpose()?;
     let mut patch = Tensor::from_vec(texture.to_vec(), (3, side, side), dev)?;
-    let (mut losses, mut cons, mut drift) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut losses, mut cons, mut drift, mut patch_losses) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for step in 0..cfg.steps {
         let b = batch(policy, data, &win, cfg.batch_size, &mut rng)?;
         let clean = images(&b)?;
@@ -579,6 +588,7 @@ pub fn finetune_encoder(
             let var = Var::from_tensor(&patch)?;
             let loss = loss_with(policy, &b, &paste(clean, var.as_tensor(), x, y)?)?;
             let grads = loss.backward()?;
+            patch_losses.push(scalar(&loss)?);
             if let Some(g) = grads.get(var.as_tensor()) {
                 patch = ascend(&patch, g, cfg.regenerate_step, Ascent::Sign)?;
             }
@@ -606,6 +616,7 @@ pub fn finetune_encoder(
     let ((first_loss, last_loss), (first_consistency, last_consistency)) =
         (first_last(&losses), first_last(&cons));
     let drift = (!drift.is_empty()).then(|| first_last(&drift));
+    let patch_loss = (!patch_losses.is_empty()).then(|| first_last(&patch_losses));
     Ok(FinetuneReport {
         steps: cfg.steps,
         encoder_tensors,
@@ -615,6 +626,8 @@ pub fn finetune_encoder(
         last_consistency,
         first_clean_drift: drift.map(|e| e.0),
         last_clean_drift: drift.map(|e| e.1),
+        first_patch_loss: patch_loss.map(|e| e.0),
+        last_patch_loss: patch_loss.map(|e| e.1),
         texture: patch.flatten_all()?.to_vec1::<f32>()?,
     })
 }

@@ -988,7 +988,12 @@ pub struct FinetuneArgs {
     #[arg(long)]
     pub regenerate: bool,
     /// Sign-ascent step of the regeneration (pixel values in [0, 1]; requires --regenerate).
-    #[arg(long, value_name = "STEP", requires = "regenerate", default_value_t = 1.5e-3)]
+    #[arg(
+        long,
+        value_name = "STEP",
+        requires = "regenerate",
+        default_value_t = 1.5e-3
+    )]
     pub regenerate_step: f64,
     /// Also save the policy every N steps, as `OUT/step-N` (for the clean-cost curve).
     #[arg(long, value_name = "N")]

@@ -585,11 +585,21 @@ fn patch_finetune_and_probe_run_end_to_end() {
         ft["report"]["last_clean_drift"].as_f64().unwrap() >= 0.0,
         "{ft}"
     );
-    assert!(!p("tuned/patch").exists(), "a fixed patch is not saved again");
+    assert!(
+        !p("tuned/patch").exists(),
+        "a fixed patch is not saved again"
+    );
     // Regenerating: the final patch is saved beside the encoder, in the same place as the
     // patch it started from, and differs from it.
     finetune("regen")
-        .args(["--quiet", "--steps", "2", "--batch-size", "4", "--regenerate"])
+        .args([
+            "--quiet",
+            "--steps",
+            "2",
+            "--batch-size",
+            "4",
+            "--regenerate",
+        ])
         .args(["--regenerate-step", "0.05"])
         .assert()
         .success();
@@ -601,7 +611,10 @@ fn patch_finetune_and_probe_run_end_to_end() {
     );
     assert_eq!(regen["regenerated"]["steps"], serde_json::json!(2));
     assert_eq!(regen["regenerated"]["step"], serde_json::json!(0.05));
-    assert!(regen["regenerated"]["last_loss"].as_f64().unwrap() > 0.0, "{regen}");
+    assert!(
+        regen["regenerated"]["last_loss"].as_f64().unwrap() > 0.0,
+        "{regen}"
+    );
     assert_ne!(
         fs::read(p("regen/patch/patch.png")).unwrap(),
         fs::read(p("patch/patch.png")).unwrap(),

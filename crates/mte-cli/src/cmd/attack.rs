@@ -261,7 +261,6 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
         regenerate: a.regenerate,
         regenerate_step: a.regenerate_step,
         seed: a.seed,
-        ..FinetuneConfig::default()
     };
     if a.checkpoint_every == Some(0) {
         anyhow::bail!("--checkpoint-every 0: expected a step count >= 1");
@@ -296,9 +295,11 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
     )?;
     bar.finish();
     save(&a.out)?;
-    if let (true, Some(first_loss), Some(last_loss)) =
-        (cfg.regenerate, report.first_patch_loss, report.last_patch_loss)
-    {
+    if let (true, Some(first_loss), Some(last_loss)) = (
+        cfg.regenerate,
+        report.first_patch_loss,
+        report.last_patch_loss,
+    ) {
         let r = mte_eval::patch_file::Regeneration {
             from: a.patch.display().to_string(),
             encoder: a.out.display().to_string(),

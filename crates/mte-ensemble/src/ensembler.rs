@@ -175,7 +175,14 @@ const LARGE_RING_BYTES: usize = 16 * 1024;
 /// [`all_finite`] for a whole chunk, compiled for AVX-512, AVX2 and the baseline and chosen
 /// at run time: at ACT's `T_p = 100`, `d = 14` the baseline's 4-lane check of every inserted
 /// chunk cost more than the copy it guards.
-#[multiversion::multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2", "aarch64+neon"))]
+#[cfg_attr(
+    not(feature = "cap-avx2"),
+    multiversion::multiversion(targets("x86_64+avx512f+avx512vl", "x86_64+avx2", "aarch64+neon"))
+)]
+#[cfg_attr(
+    feature = "cap-avx2",
+    multiversion::multiversion(targets("x86_64+avx2", "aarch64+neon"))
+)]
 fn chunk_finite(values: &[f32]) -> bool {
     all_finite_carry(values)
 }

@@ -169,7 +169,11 @@ mod simd {
         /// Whether this CPU runs the level's kernel for rows of `s` lanes.
         pub(super) fn serves(self, s: usize) -> bool {
             match self {
-                Self::Avx512 => s == 16 && std::arch::is_x86_feature_detected!("avx512f"),
+                Self::Avx512 => {
+                    !cfg!(feature = "cap-avx2")
+                        && s == 16
+                        && std::arch::is_x86_feature_detected!("avx512f")
+                }
                 Self::Avx2 => {
                     s.is_multiple_of(8) && s <= 16 && std::arch::is_x86_feature_detected!("avx2")
                 }
@@ -505,6 +509,20 @@ mod tests {
         for &x in &xs {
             assert_eq!(unkey(key(x)).to_bits(), x.to_bits());
         }
+    }
+
+    /// With dispatch capped at AVX2 no row width reaches the AVX-512 kernel, and 16-lane
+    /// rows go to AVX2 where the CPU has it (the feature's promise to its benchmarks).
+    #[cfg(all(target_arch = "x86_64", feature = "cap-avx2"))]
+    #[test]
+    fn capped_dispatch_never_reaches_avx512() {
+        for s in [4, 8, 12, 16] {
+            assert!(!simd::Level::Avx512.serves(s), "{s} lanes");
+        }
+        assert_eq!(
+            simd::Level::Avx2.serves(16),
+            std::arch::is_x86_feature_detected!("avx2")
+        );
     }
 
     /// Every SIMD level this CPU has, at every row width it serves, gives the portable

@@ -30,11 +30,18 @@ fn weighted_mean(c: &Candidates<'_>, w: &[f64], acc: &mut [f64], total: f64, out
 
 /// The weighted row sum of rows `S` values wide into `acc[..S]` (`acc` at least `S` long),
 /// whole rows at a time so the lanes vectorise; compiled for AVX-512, AVX2 and the baseline.
-#[multiversion::multiversion(targets(
-    "x86_64+avx512f+avx512vl",
-    "x86_64+avx2+fma",
-    "aarch64+neon"
-))]
+#[cfg_attr(
+    not(feature = "cap-avx2"),
+    multiversion::multiversion(targets(
+        "x86_64+avx512f+avx512vl",
+        "x86_64+avx2+fma",
+        "aarch64+neon"
+    ))
+)]
+#[cfg_attr(
+    feature = "cap-avx2",
+    multiversion::multiversion(targets("x86_64+avx2+fma", "aarch64+neon"))
+)]
 fn weighted_rows<const S: usize>(values: &[f32], w: &[f64], acc: &mut [f64]) {
     let mut sum = [0f64; S];
     let (rows, _) = values.as_chunks::<S>();

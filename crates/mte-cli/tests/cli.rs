@@ -452,6 +452,9 @@ fn attack_calibrate_reports_clean_and_attacked_rows() {
 fn patch_finetune_and_probe_run_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let p = |n: &str| dir.path().join(n);
+    let json = |n: &str| -> serde_json::Value {
+        serde_json::from_str(&fs::read_to_string(p(n)).unwrap()).unwrap()
+    };
     mte()
         .args(["data", "generate", "--episodes", "2", "--max-steps", "20"])
         .args(["--obs", "state,keypoints,pixels", "--out"])
@@ -476,8 +479,7 @@ fn patch_finetune_and_probe_run_end_to_end() {
         .assert()
         .success()
         .stdout(predicate::str::contains("\"heldout_mae\""));
-    let pre: serde_json::Value =
-        serde_json::from_str(&fs::read_to_string(p("enc/pretrain.json")).unwrap()).unwrap();
+    let pre = json("enc/pretrain.json");
     assert_eq!(pre["report"]["steps"], 2);
     assert!(pre["report"]["final_loss"].as_f64().unwrap().is_finite());
     mte()
@@ -526,8 +528,7 @@ fn patch_finetune_and_probe_run_end_to_end() {
         .assert()
         .success()
         .stdout(predicate::str::contains("patch 12x12 at world (100, 400)"));
-    let meta: serde_json::Value =
-        serde_json::from_str(&fs::read_to_string(p("patch/patch.json")).unwrap()).unwrap();
+    let meta = json("patch/patch.json");
     assert_eq!(meta["format"], "mte-patch-v1");
     // 100 / 512 * 96 - 6 = 12.75 -> 13; 400 / 512 * 96 - 6 = 69.
     assert_eq!(meta["origin"], serde_json::json!([13, 69]));
@@ -542,8 +543,7 @@ fn patch_finetune_and_probe_run_end_to_end() {
         .assert()
         .success()
         .stdout(predicate::str::contains("12 px at world (100, 400)"));
-    let grey: serde_json::Value =
-        serde_json::from_str(&fs::read_to_string(p("grey/patch.json")).unwrap()).unwrap();
+    let grey = json("grey/patch.json");
     assert_eq!(
         (&grey["origin"], &grey["epochs"]),
         (&meta["origin"], &serde_json::json!(0))
@@ -558,28 +558,26 @@ fn patch_finetune_and_probe_run_end_to_end() {
             .arg("--patch")
             .arg(p("patch"))
             .arg("--out")
-            .arg(p(out));
+            .arg(p(out))
+            .args(["--quiet", "--steps", "2", "--batch-size", "4"]);
         c
     };
     finetune("tuned")
         .args([
-            "--quiet",
-            "--steps",
-            "2",
-            "--batch-size",
-            "4",
             "--lr",
             "1e-3",
+            "--clean-features",
+            "1",
+            "--checkpoint-every",
+            "1",
         ])
-        .args(["--clean-features", "1", "--checkpoint-every", "1"])
         .assert()
         .success()
         .stdout(predicate::str::contains("for 2 steps"));
     assert!(p("tuned/model.safetensors").exists() && p("tuned/finetune.json").exists());
     // A checkpoint after step 1, none after the last (that is the output itself).
     assert!(p("tuned/step-1/model.safetensors").exists() && !p("tuned/step-2").exists());
-    let ft: serde_json::Value =
-        serde_json::from_str(&fs::read_to_string(p("tuned/finetune.json")).unwrap()).unwrap();
+    let ft = json("tuned/finetune.json");
     assert_eq!(ft["config"]["clean_features"], serde_json::json!(1.0));
     assert!(
         ft["report"]["last_clean_drift"].as_f64().unwrap() >= 0.0,
@@ -592,19 +590,10 @@ fn patch_finetune_and_probe_run_end_to_end() {
     // Regenerating: the final patch is saved beside the encoder, in the same place as the
     // patch it started from, and differs from it.
     finetune("regen")
-        .args([
-            "--quiet",
-            "--steps",
-            "2",
-            "--batch-size",
-            "4",
-            "--regenerate",
-        ])
-        .args(["--regenerate-step", "0.05"])
+        .args(["--regenerate", "--regenerate-step", "0.05"])
         .assert()
         .success();
-    let regen: serde_json::Value =
-        serde_json::from_str(&fs::read_to_string(p("regen/patch/patch.json")).unwrap()).unwrap();
+    let regen = json("regen/patch/patch.json");
     assert_eq!(
         (&regen["origin"], &regen["side"], &regen["center"]),
         (&meta["origin"], &meta["side"], &meta["center"])
@@ -620,8 +609,7 @@ fn patch_finetune_and_probe_run_end_to_end() {
         fs::read(p("patch/patch.png")).unwrap(),
         "regeneration moved the patch"
     );
-    let ft: serde_json::Value =
-        serde_json::from_str(&fs::read_to_string(p("regen/finetune.json")).unwrap()).unwrap();
+    let ft = json("regen/finetune.json");
     assert_eq!(ft["config"]["regenerate_step"], serde_json::json!(0.05));
     finetune("regen0")
         .args(["--regenerate-step", "0.05"])

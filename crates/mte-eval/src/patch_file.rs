@@ -319,26 +319,38 @@ pub fn mean_colour_control(src: &Path, dst: &Path) -> Result<PatchMeta, PatchFil
 mod tests {
     use super::*;
 
-    #[test]
-    fn the_control_is_the_patch_s_mean_colour_at_the_same_place() {
-        let (a, b) = (
-            tempfile::tempdir().expect("tmp"),
-            tempfile::tempdir().expect("tmp"),
-        );
+    /// A trained patch's report and metadata: `side` px of `value`, at `origin` in a 96 x 96
+    /// frame, centred at `center` in the world.
+    fn trained(
+        value: f32,
+        side: usize,
+        origin: (usize, usize),
+        center: [f64; 2],
+    ) -> (PatchReport, PatchMeta) {
         let report = PatchReport {
-            texture: vec![0.5; 3 * 4 * 4],
-            side: 4,
-            origin: (10, 20),
+            texture: vec![value; 3 * side * side],
+            side,
+            origin,
             initial_loss: 0.1,
             epoch_loss: vec![0.2],
         };
         let meta = PatchMeta::new(
             &PatchConfig::default(),
             &report,
-            [100.0, 300.0],
+            center,
             [96, 96],
             Path::new("ck"),
         );
+        (report, meta)
+    }
+
+    #[test]
+    fn the_control_is_the_patch_s_mean_colour_at_the_same_place() {
+        let (a, b) = (
+            tempfile::tempdir().expect("tmp"),
+            tempfile::tempdir().expect("tmp"),
+        );
+        let (_, meta) = trained(0.5, 4, (10, 20), [100.0, 300.0]);
         // Red channel 0 or 255 alternately (mean 127.5 -> 128), green 10, blue 0..16.
         let rgb: Vec<u8> = (0..16)
             .flat_map(|i| [if i % 2 == 0 { 0 } else { 255 }, 10, i as u8])
@@ -366,20 +378,7 @@ mod tests {
             tempfile::tempdir().expect("tmp"),
             tempfile::tempdir().expect("tmp"),
         );
-        let report = PatchReport {
-            texture: vec![0.9; 3 * 8 * 8],
-            side: 8,
-            origin: (5, 6),
-            initial_loss: 0.1,
-            epoch_loss: vec![0.2],
-        };
-        let meta = PatchMeta::new(
-            &PatchConfig::default(),
-            &report,
-            [90.0, 400.0],
-            [96, 96],
-            Path::new("ck"),
-        );
+        let (report, meta) = trained(0.9, 8, (5, 6), [90.0, 400.0]);
         save(a.path(), &meta, &report.rgb_u8()).expect("save");
         let grey = control(a.path(), b.path(), ControlKind::Grey).expect("grey");
         let (m, p) = load(b.path()).expect("load grey");
@@ -413,20 +412,7 @@ mod tests {
     #[test]
     fn files_without_a_placement_read_as_fixed() {
         let dir = tempfile::tempdir().expect("tmp");
-        let report = PatchReport {
-            texture: vec![0.25; 3 * 4 * 4],
-            side: 4,
-            origin: (1, 2),
-            initial_loss: 0.1,
-            epoch_loss: vec![],
-        };
-        let meta = PatchMeta::new(
-            &PatchConfig::default(),
-            &report,
-            [256.0, 256.0],
-            [96, 96],
-            Path::new("ck"),
-        );
+        let (report, meta) = trained(0.25, 4, (1, 2), [256.0, 256.0]);
         save(dir.path(), &meta, &report.rgb_u8()).expect("save");
         let mut v: serde_json::Value =
             serde_json::from_str(&fs::read_to_string(dir.path().join(JSON)).expect("read"))
@@ -447,20 +433,7 @@ mod tests {
             tempfile::tempdir().expect("tmp"),
             tempfile::tempdir().expect("tmp"),
         );
-        let report = PatchReport {
-            texture: vec![0.3; 3 * 6 * 6],
-            side: 6,
-            origin: (7, 9),
-            initial_loss: 0.1,
-            epoch_loss: vec![0.2],
-        };
-        let meta = PatchMeta::new(
-            &PatchConfig::default(),
-            &report,
-            [80.0, 420.0],
-            [96, 96],
-            Path::new("ck"),
-        );
+        let (report, meta) = trained(0.3, 6, (7, 9), [80.0, 420.0]);
         save(a.path(), &meta, &report.rgb_u8()).expect("save");
         // A control that regeneration carried on is no longer a control.
         let grey = control(a.path(), b.path(), ControlKind::Grey).expect("grey");
@@ -490,15 +463,7 @@ mod tests {
     #[test]
     fn round_trips_and_rejects_a_mismatched_png() {
         let dir = tempfile::tempdir().expect("tmp");
-        let cfg = PatchConfig::default();
-        let report = PatchReport {
-            texture: vec![0.25; 3 * 16 * 16],
-            side: 16,
-            origin: (40, 40),
-            initial_loss: 0.1,
-            epoch_loss: vec![0.1, 0.2],
-        };
-        let meta = PatchMeta::new(&cfg, &report, [256.0, 256.0], [96, 96], Path::new("ck"));
+        let (_, meta) = trained(0.25, 16, (40, 40), [256.0, 256.0]);
         let rgb: Vec<u8> = (0..16 * 16 * 3).map(|i| (i % 251) as u8).collect();
         save(dir.path(), &meta, &rgb).expect("save");
         let (m, p) = load(dir.path()).expect("load");

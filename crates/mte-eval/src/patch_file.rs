@@ -97,7 +97,9 @@ pub struct PatchMeta {
 /// How encoder fine-tuning regenerated a patch: before each fine-tuning step, one signed
 /// ascent step on the policy loss through the encoder being tuned, with the texture pasted
 /// at a position drawn uniformly in the frame (see `mte_policy::patch::finetune_encoder`).
-/// At evaluation the texture sits where the patch it started from sat.
+/// At evaluation the texture sits where the patch it started from sat; like every patch file
+/// it is stored in 8 bits per channel, so it differs from the last in-memory texture by at
+/// most half a level.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Regeneration {
     /// The patch directory it started from.

@@ -295,11 +295,8 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
     )?;
     bar.finish();
     save(&a.out)?;
-    if let (true, Some(first_loss), Some(last_loss)) = (
-        cfg.regenerate,
-        report.first_patch_loss,
-        report.last_patch_loss,
-    ) {
+    // The regeneration's losses are present exactly when the patch was regenerated.
+    if let (Some(first_loss), Some(last_loss)) = (report.first_patch_loss, report.last_patch_loss) {
         let r = mte_eval::patch_file::Regeneration {
             from: a.patch.display().to_string(),
             encoder: a.out.display().to_string(),

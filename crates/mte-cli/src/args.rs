@@ -173,6 +173,9 @@ pub struct EvalPolicyArgs {
     /// observations), an analysis control for the clean-data confound.
     #[arg(long, value_enum, default_value_t = SamplingArg::Independent)]
     pub sampling: SamplingArg,
+    /// Where the policy runs: `cpu`, or `cuda` / `cuda:N` in a build with the `cuda` feature.
+    #[arg(long, default_value = "cpu")]
+    pub device: mte_policy::ComputeDevice,
 }
 
 /// How sampling noise varies across queries (`mte_eval::pusht::Sampling`).
@@ -655,6 +658,10 @@ pub struct SweepArgs {
     /// (the records do not depend on it); 1 runs each episode alone.
     #[arg(long, default_value_t = mte_eval::sweep::RunOptions::DEFAULT_BATCH, value_parser = at_least_one)]
     pub batch: usize,
+    /// Where the policies run: `cpu`, or `cuda` / `cuda:N` in a build with the `cuda`
+    /// feature (environments and ensemblers stay on the CPU).
+    #[arg(long, default_value = "cpu")]
+    pub device: mte_policy::ComputeDevice,
 }
 
 /// `mte report`

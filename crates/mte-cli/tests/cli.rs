@@ -315,6 +315,33 @@ fn bundled_image_policies_run_an_episode() {
     }
 }
 
+/// `--device` is parsed into a device or refused with the accepted names, the JSON says where
+/// the policy ran, and a CUDA device in a build without the `cuda` feature is an error that
+/// says how to get one (nothing falls back to the CPU silently).
+#[test]
+fn eval_policy_names_its_device_and_refuses_unknown_ones() {
+    let eval = |device: &str| {
+        let mut c = mte();
+        c.args(["--format", "json", "eval", "policy", "--episodes", "1"])
+            .args(["--max-steps", "5", "--device", device, "--checkpoint"])
+            .arg(bundled());
+        c
+    };
+    let v = json_stdout(&mut eval("cpu"));
+    assert_eq!(v["device"], "cpu", "{v}");
+    eval("gpu")
+        .assert()
+        .failure()
+        .stderr(predicates::str::contains("cpu, cuda or cuda:N"));
+    if !cfg!(feature = "cuda") {
+        eval("cuda:0")
+            .assert()
+            .failure()
+            .stderr(predicates::str::contains("device cuda:0"))
+            .stderr(predicates::str::contains("`cuda` feature"));
+    }
+}
+
 #[test]
 fn demo_runs_pairs_resumes_and_reports() {
     let dir = tempfile::tempdir().unwrap();

@@ -25,6 +25,11 @@ pub struct Machine {
     pub logical_cpus: usize,
     /// `std::env::consts::ARCH` and `OS`, as `arch-os`.
     pub target: String,
+    /// Where the policies ran when not on this CPU (`cuda:0`); absent for CPU runs and in
+    /// manifests written before it existed. GPU kernels round differently again, so records
+    /// of one accelerator compare bit for bit only with records of the same one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub accelerator: Option<String>,
 }
 
 impl Machine {
@@ -35,13 +40,23 @@ impl Machine {
             vector_extensions: vector_extensions().into_iter().map(String::from).collect(),
             logical_cpus: std::thread::available_parallelism().map_or(1, |n| n.get()),
             target: format!("{}-{}", std::env::consts::ARCH, std::env::consts::OS),
+            accelerator: None,
         }
     }
 
-    /// One line: `AMD EPYC (x86_64-linux, 2 logical cpus; avx avx2 fma ...)`.
+    /// This machine with its policies on `accelerator` (a device name such as `cuda:0`).
+    pub fn with_accelerator(self, accelerator: impl Into<String>) -> Self {
+        Self {
+            accelerator: Some(accelerator.into()),
+            ..self
+        }
+    }
+
+    /// One line: `AMD EPYC (x86_64-linux, 2 logical cpus; avx avx2 fma ...)`, followed by
+    /// `, policies on cuda:0` where they ran on an accelerator.
     pub fn summary(&self) -> String {
         format!(
-            "{} ({}, {} logical cpus; {})",
+            "{} ({}, {} logical cpus; {}){}",
             self.cpu_model,
             self.target,
             self.logical_cpus,
@@ -49,7 +64,10 @@ impl Machine {
                 "no vector extensions detected".to_string()
             } else {
                 self.vector_extensions.join(" ")
-            }
+            },
+            self.accelerator
+                .as_ref()
+                .map_or(String::new(), |a| format!(", policies on {a}"))
         )
     }
 }
@@ -138,5 +156,29 @@ mod tests {
         let back: Machine =
             serde_json::from_str(&serde_json::to_string(&m).expect("json")).expect("round trip");
         assert_eq!(back, m);
+        assert!(
+            !serde_json::to_string(&m)
+                .expect("json")
+                .contains("accelerator")
+        );
+    }
+
+    #[test]
+    fn an_accelerator_is_recorded_and_older_manifests_read_without_one() {
+        let gpu = Machine::detect().with_accelerator("cuda:0");
+        assert_eq!(gpu.accelerator.as_deref(), Some("cuda:0"));
+        assert!(
+            gpu.summary().ends_with(", policies on cuda:0"),
+            "{}",
+            gpu.summary()
+        );
+        let json = serde_json::to_string(&gpu).expect("json");
+        assert_eq!(serde_json::from_str::<Machine>(&json).expect("back"), gpu);
+        let old =
+            r#"{"cpu_model":"X","vector_extensions":[],"logical_cpus":2,"target":"x86_64-linux"}"#;
+        let m: Machine = serde_json::from_str(old).expect("an older manifest's machine");
+        assert_eq!(m.accelerator, None);
+        // A CPU run and a GPU run on one host are two machines (merge_machines keeps both).
+        assert_ne!(Machine::detect(), gpu);
     }
 }

@@ -1590,6 +1590,7 @@ mod tests {
                 vector_extensions: vec!["avx2".into(), "fma".into()],
                 logical_cpus: 2,
                 target: "x86_64-linux".into(),
+                accelerator: None,
             }],
         }
     }

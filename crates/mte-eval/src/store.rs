@@ -379,6 +379,7 @@ mod tests {
             vector_extensions: vec!["avx2".into()],
             logical_cpus: 2,
             target: "x86_64-linux".into(),
+            accelerator: None,
         }
     }
 

@@ -376,6 +376,18 @@ impl PolicySource for CheckpointSource {
     }
 }
 
+/// Loads checkpoint directories with their weights on one device
+/// ([`mte_policy::load_policy_on`]): a sweep's policy forwards (and PGD's backward passes)
+/// then run there, in lockstep batches; environments and ensemblers stay on the CPU.
+#[derive(Debug, Clone)]
+pub struct CheckpointSourceOn(pub candle_core::Device);
+
+impl PolicySource for CheckpointSourceOn {
+    fn load(&self, path: &str) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError> {
+        mte_policy::load_policy_on(Path::new(path), &self.0)
+    }
+}
+
 /// What [`run`] did.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct SweepSummary {

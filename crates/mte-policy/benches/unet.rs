@@ -8,6 +8,10 @@
 //! Also: one PGD iteration, and the image encoder's forward + backward at training size.
 //! Every evaluation benchmark holds its weights as constants, as a loaded checkpoint does
 //! (`frozen_policy`); the training step's are variables.
+//!
+//! `MTE_BENCH_DEVICE=cuda` (a build with `--features cuda`) runs every benchmark on GPU 0;
+//! each iteration then ends with a device synchronisation, so it times the work, not its
+//! launch.
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
@@ -19,6 +23,22 @@ fn main() {
     // As the `mte` binary does: freed tensor buffers stay in the heap.
     mte_policy::memory::keep_freed_memory();
     divan::main();
+}
+
+/// The device of every benchmark: `MTE_BENCH_DEVICE` (`cpu`, `cuda`, `cuda:N`), else the CPU.
+fn dev() -> &'static Device {
+    static DEV: std::sync::OnceLock<Device> = std::sync::OnceLock::new();
+    DEV.get_or_init(|| {
+        let name = std::env::var("MTE_BENCH_DEVICE").unwrap_or_else(|_| "cpu".into());
+        let d: mte_policy::ComputeDevice = name.parse().expect("MTE_BENCH_DEVICE");
+        d.open().expect("open the benchmark device")
+    })
+}
+
+/// Waits for the device's queued work (a no-op on the CPU).
+fn sync<T>(v: T) -> T {
+    dev().synchronize().expect("synchronize");
+    v
 }
 
 fn stats() -> StatsMap {
@@ -43,7 +63,7 @@ fn policy(preset: &str) -> (DiffusionPolicy, VarMap) {
         _ => DiffusionConfig::cpu(ObsKind::Keypoints),
     };
     let vm = VarMap::new();
-    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+    let vb = VarBuilder::from_varmap(&vm, DType::F32, dev());
     (DiffusionPolicy::new(c, stats(), vb).expect("policy"), vm)
 }
 
@@ -60,7 +80,7 @@ fn frozen_policy(preset: &str) -> DiffusionPolicy {
         .iter()
         .map(|(k, v)| (k.clone(), v.as_tensor().detach()))
         .collect();
-    let vb = VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu);
+    let vb = VarBuilder::from_tensors(tensors, DType::F32, dev());
     DiffusionPolicy::new(c, stats(), vb).expect("frozen policy")
 }
 
@@ -72,12 +92,13 @@ fn unet_forward(bencher: divan::Bencher, preset: &str) {
     } else {
         2 * 66
     };
-    let x = Tensor::randn(0f32, 1.0, (1, 16, 2), &Device::Cpu).expect("x");
-    let cond = Tensor::randn(0f32, 1.0, (1, g), &Device::Cpu).expect("cond");
+    let x = Tensor::randn(0f32, 1.0, (1, 16, 2), dev()).expect("x");
+    let cond = Tensor::randn(0f32, 1.0, (1, g), dev()).expect("cond");
     bencher.bench_local(|| {
         p.unet()
             .expect("U-Net")
             .forward(&x, &[50], &cond)
+            .map(sync)
             .expect("forward")
     });
 }
@@ -87,7 +108,7 @@ fn chunk(bencher: divan::Bencher, preset: &str) {
     let p = frozen_policy(preset);
     let hist = history(preset);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-    bencher.bench_local(|| p.predict(&hist, &mut rng).expect("chunk"));
+    bencher.bench_local(|| sync(p.predict(&hist, &mut rng).expect("chunk")));
 }
 
 /// 32 chunks at once (`ChunkPolicy::predict_chunks`, as the lockstep runner asks): divide by
@@ -108,7 +129,7 @@ fn chunks_batch_32(bencher: divan::Bencher, preset: &str) {
                 rng,
             })
             .collect();
-        p.predict_chunks(&mut qs).expect("chunks")
+        sync(p.predict_chunks(&mut qs).expect("chunks"))
     });
 }
 
@@ -117,14 +138,14 @@ fn chunks_batch_32(bencher: divan::Bencher, preset: &str) {
 #[divan::bench(sample_count = 5)]
 fn unet_train_step(bencher: divan::Bencher) {
     let (p, vm) = policy("cpu-keypoints");
-    let cond = Tensor::randn(0f32, 1.0, (64, 2 * (2 + 16)), &Device::Cpu).expect("cond");
-    let x0 = Tensor::randn(0f32, 0.5, (64, 16, 2), &Device::Cpu).expect("x0");
-    let eps = Tensor::randn(0f32, 1.0, (64, 16, 2), &Device::Cpu).expect("eps");
+    let cond = Tensor::randn(0f32, 1.0, (64, 2 * (2 + 16)), dev()).expect("cond");
+    let x0 = Tensor::randn(0f32, 0.5, (64, 16, 2), dev()).expect("x0");
+    let eps = Tensor::randn(0f32, 1.0, (64, 16, 2), dev()).expect("eps");
     let ts: Vec<usize> = (0..64).map(|i| (i * 3) % 100).collect();
     bencher.bench_local(|| {
         let loss = p.loss(&cond, &x0, &eps, &ts, None).expect("loss");
         let grads = loss.backward().expect("backward");
-        assert!(grads.get(&vm.all_vars()[0]).is_some());
+        assert!(sync(grads).get(&vm.all_vars()[0]).is_some());
     });
 }
 
@@ -136,13 +157,13 @@ fn unet_train_step(bencher: divan::Bencher) {
 fn pgd_iteration(bencher: divan::Bencher, preset: &str) {
     let p = frozen_policy(preset);
     let hist = history(preset);
-    let x0 = Tensor::randn(0f32, 0.5, (1, 16, 2), &Device::Cpu).expect("x0");
+    let x0 = Tensor::randn(0f32, 0.5, (1, 16, 2), dev()).expect("x0");
     let cfg = mte_policy::PgdConfig {
         iterations: 1,
         ..mte_policy::PgdConfig::default()
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-    bencher.bench_local(|| p.pgd_perturb(&hist, &x0, &cfg, &mut rng).expect("pgd"));
+    bencher.bench_local(|| sync(p.pgd_perturb(&hist, &x0, &cfg, &mut rng).expect("pgd")));
 }
 
 /// One PGD iteration for 16 attacked queries at once (as the lockstep runner attacks them):
@@ -152,7 +173,7 @@ fn pgd_iteration_batch_16(bencher: divan::Bencher, preset: &str) {
     let p = frozen_policy(preset);
     let hist = history(preset);
     let clean = p.obs_batch(&vec![hist.as_slice(); 16]).expect("batch");
-    let x0 = Tensor::randn(0f32, 0.5, (16, 16, 2), &Device::Cpu).expect("x0");
+    let x0 = Tensor::randn(0f32, 0.5, (16, 16, 2), dev()).expect("x0");
     let cfg = mte_policy::PgdConfig {
         iterations: 1,
         ..mte_policy::PgdConfig::default()
@@ -165,7 +186,7 @@ fn pgd_iteration_batch_16(bencher: divan::Bencher, preset: &str) {
             .iter_mut()
             .map(|r| r as &mut dyn rand::RngCore)
             .collect();
-        p.pgd_perturb_batch(&clean, &x0, &cfg, &mut r).expect("pgd")
+        sync(p.pgd_perturb_batch(&clean, &x0, &cfg, &mut r).expect("pgd"))
     });
 }
 
@@ -175,14 +196,15 @@ fn pgd_iteration_batch_16(bencher: divan::Bencher, preset: &str) {
 #[divan::bench(sample_count = 5)]
 fn encoder_train_step(bencher: divan::Bencher) {
     let vm = VarMap::new();
-    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+    let vb = VarBuilder::from_varmap(&vm, DType::F32, dev());
     let enc = mte_policy::vision::RgbEncoder::with_width(16, Some([84, 84]), 32, vb).expect("enc");
-    let x = Tensor::rand(0f32, 1.0, (128, 3, 84, 84), &Device::Cpu).expect("x");
+    let x = Tensor::rand(0f32, 1.0, (128, 3, 84, 84), dev()).expect("x");
     bencher.bench_local(|| {
         let f = enc.forward_cropped(&x).expect("forward");
         f.sqr()
             .and_then(|v| v.sum_all())
             .and_then(|l| l.backward())
+            .map(sync)
             .expect("backward")
     });
 }

@@ -31,6 +31,14 @@ pub enum PolicyError {
         /// What is wrong.
         reason: String,
     },
+    /// A compute device that cannot be opened or cannot run this policy.
+    #[error("device {device}: {reason}")]
+    Device {
+        /// The device, as named (`cuda:0`).
+        device: String,
+        /// Why not.
+        reason: String,
+    },
     /// A scheduler error.
     #[error("scheduler: {0}")]
     Scheduler(#[from] crate::scheduler::SchedulerError),

@@ -3,7 +3,8 @@
 //! - [`policy`]: the seam, free of tensor types. [`ChunkPolicy`] (a history of `T_o`
 //!   [`Observation`]s in, a `T_p x d` chunk out, randomness injected, [`ObsNeeds`] saying
 //!   what it reads), [`AttackablePolicy`] (the gradient access PGD needs) and
-//!   [`load_policy`], which dispatches on a checkpoint's `config.json` `type`.
+//!   [`load_policy`], which dispatches on a checkpoint's `config.json` `type`
+//!   ([`load_policy_on`] puts it on a [`ComputeDevice`]: the CPU or, built with `cuda`, a GPU).
 //! - [`diffusion`]: Diffusion Policy as LeRobot 0.4.4 defines it (config, U-Net, schedulers,
 //!   model, checkpoints in both LeRobot layouts, training, PGD, the physical patch and the
 //!   encoder defence); its modules are re-exported here under their old paths.
@@ -19,6 +20,7 @@
 
 pub mod act;
 pub mod attention;
+pub mod compute;
 pub mod diffusion;
 pub mod error;
 pub mod init;
@@ -34,11 +36,12 @@ pub use diffusion::{
 };
 
 pub use attack::{PgdConfig, PgdOutcome};
+pub use compute::ComputeDevice;
 pub use config::{DiffusionConfig, ObsKind};
 pub use error::PolicyError;
 pub use model::{DiffusionPolicy, ObsBatch, ObsGradient, StatsMap};
 pub use normalize::{NormMode, Normalizer, Stats};
 pub use policy::{
     AttackablePolicy, AttackedQuery, ChunkPolicy, ObsNeeds, Observation, POLICY_TYPES, Query,
-    attackable, load_policy,
+    attackable, load_policy, load_policy_on,
 };

@@ -149,6 +149,18 @@ pub const POLICY_TYPES: &[&str] = &["diffusion", "act"];
 /// `config.json`, [`PolicyError::Config`] naming the known types for an unknown `type`, and
 /// the policy's own load errors.
 pub fn load_policy(dir: &Path) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError> {
+    load_policy_on(dir, &candle_core::Device::Cpu)
+}
+
+/// [`load_policy`] with the weights on `device` (see [`crate::ComputeDevice`]).
+///
+/// # Errors
+/// As [`load_policy`], and [`PolicyError::Device`] for an ACT checkpoint on a non-CPU device
+/// (ACT is CPU-only for now).
+pub fn load_policy_on(
+    dir: &Path,
+    device: &candle_core::Device,
+) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError> {
     let path = dir.join("config.json");
     let text = std::fs::read_to_string(&path).map_err(|source| PolicyError::Io {
         path: path.clone(),
@@ -161,10 +173,11 @@ pub fn load_policy(dir: &Path) -> Result<Box<dyn ChunkPolicy + Send + Sync>, Pol
         })?;
     let kind = value.get("type").and_then(|t| t.as_str()).unwrap_or("");
     match kind {
-        "diffusion" => Ok(Box::new(crate::checkpoint::load(
-            dir,
-            &candle_core::Device::Cpu,
-        )?)),
+        "diffusion" => Ok(Box::new(crate::checkpoint::load(dir, device)?)),
+        "act" if !device.is_cpu() => Err(PolicyError::Device {
+            device: format!("{:?}", device.location()),
+            reason: "ACT runs on the CPU only; load it with --device cpu".into(),
+        }),
         "act" => Ok(Box::new(crate::act::ActPolicy::load(dir)?)),
         other => Err(config_err(
             "type",

@@ -65,6 +65,7 @@ pub fn run(cli: &Cli, a: &DemoArgs) -> Result<()> {
         resume,
         Shard::default(),
         super::sweep::options(a.workers, a.batch)?,
+        mte_policy::ComputeDevice::Cpu,
     )
     .map_err(|e| {
         let other_grid = e

@@ -21,8 +21,12 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
             a.execution
         )
     })?;
-    let p = mte_policy::load_policy(&a.checkpoint)
-        .with_context(|| format!("loading {}", a.checkpoint.display()))?;
+    let device = a
+        .device
+        .open()
+        .with_context(|| format!("--device {}", a.device))?;
+    let p = mte_policy::load_policy_on(&a.checkpoint, &device)
+        .with_context(|| format!("loading {} on {}", a.checkpoint.display(), a.device))?;
     let needs = p.needs();
     let bar = Bar::new(!cli.no_progress && !cli.quiet);
     bar.start("episodes", a.episodes as u64);
@@ -70,16 +74,17 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
         Format::Json => writeln!(
             so,
             "{}",
-            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "execution": a.execution, "stride": a.stride, "sampling": a.sampling, "candidates": spread, "machine": mte_eval::machine::Machine::detect()})
+            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "execution": a.execution, "stride": a.stride, "sampling": a.sampling, "candidates": spread, "device": a.device.to_string(), "machine": machine(a.device)})
         )?,
         Format::Text => {
             writeln!(
                 so,
-                "{succ}/{} successful, mean max coverage {mean_max:.3} ({}, h = {}, {} sampling), {secs:.0} s",
+                "{succ}/{} successful, mean max coverage {mean_max:.3} ({}, h = {}, {} sampling), {secs:.0} s on {}",
                 out.len(),
                 a.execution,
                 a.stride,
                 format!("{:?}", a.sampling).to_lowercase(),
+                a.device,
             )?;
             if spread.steps > 0 {
                 let ages: Vec<String> = spread.by_age.iter().map(|v| format!("{v:.1}")).collect();
@@ -102,4 +107,13 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// This machine, with the policy's device where it is not the CPU.
+fn machine(device: mte_policy::ComputeDevice) -> mte_eval::machine::Machine {
+    let m = mte_eval::machine::Machine::detect();
+    match device {
+        mte_policy::ComputeDevice::Cpu => m,
+        gpu => m.with_accelerator(gpu.to_string()),
+    }
 }

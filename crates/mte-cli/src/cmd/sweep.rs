@@ -5,7 +5,11 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use mte_eval::store::RunDir;
-use mte_eval::sweep::{self, CheckpointSource, RunOptions, Shard, SweepSpec, SweepSummary};
+use mte_eval::sweep::{
+    self, CheckpointSource, CheckpointSourceOn, PolicySource, RunOptions, Shard, SweepSpec,
+    SweepSummary,
+};
+use mte_policy::ComputeDevice;
 
 use crate::args::{Cli, Format, SweepArgs};
 use crate::progress::Bar;
@@ -39,7 +43,17 @@ pub fn options(workers: Option<usize>, batch: usize) -> Result<RunOptions> {
     Ok(RunOptions { workers, batch })
 }
 
-/// Creates or resumes `out` and runs `shard` of `spec` in it.
+/// Where a sweep's policies run: the CPU, or the opened `device`.
+pub fn policy_source(device: ComputeDevice) -> Result<Box<dyn PolicySource>> {
+    Ok(match device {
+        ComputeDevice::Cpu => Box::new(CheckpointSource),
+        other => Box::new(CheckpointSourceOn(
+            other.open().with_context(|| format!("--device {other}"))?,
+        )),
+    })
+}
+
+/// Creates or resumes `out` and runs `shard` of `spec` in it, the policies on `device`.
 pub fn execute(
     cli: &Cli,
     spec: &SweepSpec,
@@ -47,13 +61,20 @@ pub fn execute(
     resume: bool,
     shard: Shard,
     options: RunOptions,
+    device: ComputeDevice,
 ) -> Result<SweepSummary> {
-    let manifest = spec.manifest(git_commit(), now_unix());
+    let source = policy_source(device)?;
+    let mut manifest = spec.manifest(git_commit(), now_unix());
+    if device != ComputeDevice::Cpu {
+        for m in &mut manifest.machines {
+            *m = m.clone().with_accelerator(device.to_string());
+        }
+    }
     let run = RunDir::create(out, &spec.to_toml()?, &manifest, resume)?;
     let bar = Bar::new(!cli.no_progress && !cli.quiet);
     // Cells and commit come from the stored manifest when resuming (same grid, checked).
     let stored = mte_eval::store::read_manifest(run.root())?;
-    let summary = sweep::run(spec, &stored, &run, shard, options, &CheckpointSource, &bar)?;
+    let summary = sweep::run(spec, &stored, &run, shard, options, source.as_ref(), &bar)?;
     Ok(summary)
 }
 
@@ -75,6 +96,7 @@ pub fn run(cli: &Cli, a: &SweepArgs) -> Result<()> {
         a.resume,
         shard,
         options(a.workers, a.batch)?,
+        a.device,
     )?;
     print_summary(cli, &s, &a.out, t0.elapsed().as_secs_f64())?;
     fail_on_errors(&s, &a.out)

@@ -1,0 +1,172 @@
+//! The bundled checkpoints give the same outputs on a CUDA GPU as on the CPU.
+//!
+//! Built only with `--features cuda` and run on a machine with a GPU (CI has neither):
+//! `cargo test -p mte-policy --features cuda --test cuda`.
+//!
+//! Tolerances. Both devices compute in f32 from the same weights and the same noise (drawn
+//! on the CPU from the injected generator, then copied), but sum in different orders
+//! (candle's CUDA convolutions and matrix products go through cuBLAS), so values differ by
+//! rounding: about 1e-6 relative per operation, about 1e-5 after a U-Net's few dozen layers.
+//! - One U-Net forward, and the image encoder's conditioning: max |difference| <= 1e-3 of the output's max |value| (100x the
+//!   rounding estimate, still far below a wrong kernel's O(1) error).
+//! - A whole chunk (100 denoising steps, which compound rounding): max |difference| <= 1 px
+//!   of PushT's 512-px workspace, against candidate-to-candidate spreads of tens of pixels
+//!   (`docs/experiments/clean_confound`), so the aggregators see the same chunks.
+//! - The observation gradient (PGD's direction): cosine similarity >= 0.999.
+#![cfg(feature = "cuda")]
+
+use std::path::PathBuf;
+
+use candle_core::{Device, Tensor};
+use mte_policy::{ComputeDevice, DiffusionPolicy, Observation, checkpoint};
+use rand::SeedableRng;
+
+fn asset(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../assets/policies")
+        .join(name)
+}
+
+fn gpu() -> Device {
+    ComputeDevice::Cuda(0).open().expect("a CUDA GPU")
+}
+
+/// Two observations with structure (a textured image, keypoints off the centre), so a
+/// wrong kernel cannot hide behind constant inputs.
+fn history(image: bool, keypoints: bool) -> Vec<Observation> {
+    (0..2)
+        .map(|t| Observation {
+            state: vec![180.0 + 10.0 * t as f32, 310.0],
+            env_state: keypoints.then(|| (0..16).map(|i| 150.0 + 17.0 * i as f32).collect()),
+            image: image.then(|| {
+                (0..96 * 96 * 3)
+                    .map(|i| ((i * 37 + t * 11) % 251) as u8)
+                    .collect()
+            }),
+        })
+        .collect()
+}
+
+fn both(name: &str) -> (DiffusionPolicy, DiffusionPolicy) {
+    let dir = asset(name);
+    let cpu = checkpoint::load(&dir, &Device::Cpu).expect("cpu load");
+    let gpu = checkpoint::load(&dir, &gpu()).expect("gpu load");
+    (cpu, gpu)
+}
+
+fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+fn vec_of(t: &Tensor) -> Vec<f32> {
+    t.flatten_all().and_then(|t| t.to_vec1()).expect("to_vec")
+}
+
+#[test]
+fn chunks_match_the_cpu() {
+    for (name, image, keypoints) in [
+        ("pusht_keypoints_cpu", false, true),
+        ("pusht_image_cpu_v3", true, false),
+        ("pusht_image_dit_cpu", true, false),
+    ] {
+        let (cpu, gpu) = both(name);
+        let hist = history(image, keypoints);
+        let a = cpu
+            .predict(&hist, &mut rand_chacha::ChaCha8Rng::seed_from_u64(7))
+            .expect("cpu chunk");
+        let b = gpu
+            .predict(&hist, &mut rand_chacha::ChaCha8Rng::seed_from_u64(7))
+            .expect("gpu chunk");
+        let d = max_abs_diff(&a, &b);
+        eprintln!("{name}: chunk max |cpu - gpu| = {d:.3e} px");
+        assert!(d <= 1.0, "{name}: chunks differ by {d} px");
+        let spread = a.iter().fold(0f32, |m, v| m.max(v.abs()));
+        assert!(spread > 1.0, "{name}: a degenerate chunk {a:?}");
+    }
+}
+
+#[test]
+fn one_unet_forward_matches_the_cpu() {
+    let (cpu, gpu) = both("pusht_image_cpu_v3");
+    let hist = history(true, false);
+    // The conditioning computed once on the CPU, so the U-Net alone is compared.
+    let cond = cpu
+        .global_cond(&cpu.obs_batch(&[hist.as_slice()]).expect("obs"))
+        .expect("cond");
+    let xs: Vec<f32> = (0..16 * 2)
+        .map(|i| ((i * 7) % 13) as f32 / 6.0 - 1.0)
+        .collect();
+    let run = |p: &DiffusionPolicy| {
+        let d = p.device();
+        let x = Tensor::from_vec(xs.clone(), (1, 16, 2), d).expect("x");
+        let c = cond.to_device(d).expect("cond");
+        vec_of(
+            &p.unet()
+                .expect("U-Net")
+                .forward(&x, &[50], &c)
+                .expect("fwd"),
+        )
+    };
+    let (a, b) = (run(&cpu), run(&gpu));
+    let scale = a.iter().fold(0f32, |m, v| m.max(v.abs()));
+    let d = max_abs_diff(&a, &b);
+    eprintln!("U-Net forward: max |cpu - gpu| = {d:.3e} (max |y| = {scale:.3})");
+    assert!(scale > 0.0 && d <= 1e-3 * scale, "{d} against {scale}");
+}
+
+#[test]
+fn the_conditioning_matches_the_cpu() {
+    let (cpu, gpu) = both("pusht_image_cpu_v3");
+    let hist = history(true, false);
+    let cond = |p: &DiffusionPolicy| {
+        vec_of(
+            &p.global_cond(&p.obs_batch(&[hist.as_slice()]).expect("obs"))
+                .expect("cond"),
+        )
+    };
+    let (a, b) = (cond(&cpu), cond(&gpu));
+    let scale = a.iter().fold(0f32, |m, v| m.max(v.abs()));
+    let d = max_abs_diff(&a, &b);
+    eprintln!("image encoder + conditioning: max |cpu - gpu| = {d:.3e} (max = {scale:.3})");
+    assert!(scale > 0.0 && d <= 1e-3 * scale, "{d} against {scale}");
+}
+
+#[test]
+fn the_observation_gradient_matches_the_cpu() {
+    let (cpu, gpu) = both("pusht_image_cpu_v3");
+    let hist = history(true, false);
+    let x0s: Vec<f32> = (0..16 * 2)
+        .map(|i| ((i * 3) % 7) as f32 / 7.0 - 0.5)
+        .collect();
+    let eps: Vec<f32> = (0..4 * 16 * 2)
+        .map(|i| ((i * 5) % 9) as f32 / 4.5 - 1.0)
+        .collect();
+    let run = |p: &DiffusionPolicy| {
+        let d = p.device();
+        let obs = p.obs_batch(&[hist.as_slice()]).expect("obs");
+        let x0 = Tensor::from_vec(x0s.clone(), (1, 16, 2), d).expect("x0");
+        let e = Tensor::from_vec(eps.clone(), (4, 16, 2), d).expect("eps");
+        let (loss, g) = p
+            .observation_gradient(&obs, &x0, &e, &[5, 30, 60, 90])
+            .expect("gradient");
+        (loss, vec_of(g.image.as_ref().expect("image gradient")))
+    };
+    let ((la, a), (lb, b)) = (run(&cpu), run(&gpu));
+    let dot: f64 = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| f64::from(*x) * f64::from(*y))
+        .sum();
+    let norm = |v: &[f32]| v.iter().map(|x| f64::from(*x).powi(2)).sum::<f64>().sqrt();
+    let cos = dot / (norm(&a) * norm(&b));
+    eprintln!("loss cpu {la} gpu {lb}; image gradient cosine {cos:.6}");
+    assert!(
+        (la - lb).abs() <= 1e-3 * la.abs().max(1e-3),
+        "losses {la} vs {lb}"
+    );
+    assert!(cos >= 0.999, "gradient cosine {cos}");
+}

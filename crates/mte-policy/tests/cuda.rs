@@ -14,12 +14,18 @@
 //!   (`docs/experiments/clean_confound`), so the aggregators see the same chunks.
 //! - The observation gradient (PGD's direction): cosine similarity >= 0.999.
 #![cfg(feature = "cuda")]
+// The measured differences are this test's report.
+#![allow(clippy::print_stderr)]
+
+mod common;
 
 use std::path::PathBuf;
 
 use candle_core::{Device, Tensor};
 use mte_policy::{ComputeDevice, DiffusionPolicy, Observation, checkpoint};
 use rand::SeedableRng;
+
+use common::max_abs_diff_slices;
 
 fn asset(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -54,12 +60,15 @@ fn both(name: &str) -> (DiffusionPolicy, DiffusionPolicy) {
     (cpu, gpu)
 }
 
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
+/// Asserts `max |a - b| <= rel * max |a|` (and that `a` is not all zeros), printing both.
+fn assert_close(what: &str, a: &[f32], b: &[f32], rel: f32) {
+    let scale = a.iter().fold(0f32, |m, v| m.max(v.abs()));
+    let d = max_abs_diff_slices(a, b);
+    eprintln!("{what}: max |cpu - gpu| = {d:.3e} (max |cpu| = {scale:.3})");
+    assert!(
+        scale > 0.0 && d <= rel * scale,
+        "{what}: {d} against {scale}"
+    );
 }
 
 fn vec_of(t: &Tensor) -> Vec<f32> {
@@ -81,7 +90,7 @@ fn chunks_match_the_cpu() {
         let b = gpu
             .predict(&hist, &mut rand_chacha::ChaCha8Rng::seed_from_u64(7))
             .expect("gpu chunk");
-        let d = max_abs_diff(&a, &b);
+        let d = max_abs_diff_slices(&a, &b);
         eprintln!("{name}: chunk max |cpu - gpu| = {d:.3e} px");
         assert!(d <= 1.0, "{name}: chunks differ by {d} px");
         let spread = a.iter().fold(0f32, |m, v| m.max(v.abs()));
@@ -111,11 +120,7 @@ fn one_unet_forward_matches_the_cpu() {
                 .expect("fwd"),
         )
     };
-    let (a, b) = (run(&cpu), run(&gpu));
-    let scale = a.iter().fold(0f32, |m, v| m.max(v.abs()));
-    let d = max_abs_diff(&a, &b);
-    eprintln!("U-Net forward: max |cpu - gpu| = {d:.3e} (max |y| = {scale:.3})");
-    assert!(scale > 0.0 && d <= 1e-3 * scale, "{d} against {scale}");
+    assert_close("U-Net forward", &run(&cpu), &run(&gpu), 1e-3);
 }
 
 #[test]
@@ -128,11 +133,12 @@ fn the_conditioning_matches_the_cpu() {
                 .expect("cond"),
         )
     };
-    let (a, b) = (cond(&cpu), cond(&gpu));
-    let scale = a.iter().fold(0f32, |m, v| m.max(v.abs()));
-    let d = max_abs_diff(&a, &b);
-    eprintln!("image encoder + conditioning: max |cpu - gpu| = {d:.3e} (max = {scale:.3})");
-    assert!(scale > 0.0 && d <= 1e-3 * scale, "{d} against {scale}");
+    assert_close(
+        "image encoder + conditioning",
+        &cond(&cpu),
+        &cond(&gpu),
+        1e-3,
+    );
 }
 
 #[test]

@@ -5,12 +5,16 @@
 //! own kernels and summation order, so single ops agree to a few ulp and a 10-step denoising
 //! loop to ~1e-5 (the clip to [-1, 1] in every DDPM step keeps errors from growing).
 
+mod common;
+
 use std::path::PathBuf;
 
 use candle_core::{Device, Tensor};
 use mte_policy::checkpoint;
 use mte_policy::{DiffusionPolicy, Observation};
 use serde_json::Value;
+
+use common::max_abs_diff_slices;
 
 fn dir(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -29,14 +33,6 @@ fn floats(v: &Value) -> Vec<f32> {
         Value::Number(n) => vec![n.as_f64().expect("number") as f32],
         other => panic!("not numeric: {other}"),
     }
-}
-
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
 }
 
 fn load(name: &str) -> DiffusionPolicy {
@@ -85,7 +81,7 @@ fn global_conditioning_matches() {
     let expect = floats(&r["global_conditioning"]["global_cond"]);
     // Normalisation is one multiply-add per value: a few ulp.
     assert!(
-        max_abs_diff(&cond, &expect) < 1e-6,
+        max_abs_diff_slices(&cond, &expect) < 1e-6,
         "{cond:?} vs {expect:?}"
     );
 }
@@ -109,7 +105,7 @@ fn unet_outputs_match() {
                 .expect("f")
                 .to_vec1()
                 .expect("v");
-            assert!(max_abs_diff(&emb, &floats(&case["timestep_embedding"])) < 1e-5);
+            assert!(max_abs_diff_slices(&emb, &floats(&case["timestep_embedding"])) < 1e-5);
             let out: Vec<f32> = p
                 .unet()
                 .expect("U-Net")
@@ -120,7 +116,7 @@ fn unet_outputs_match() {
                 .to_vec1()
                 .expect("v");
             let expect = floats(&case["output"]);
-            let d = max_abs_diff(&out, &expect);
+            let d = max_abs_diff_slices(&out, &expect);
             // ~20 layers of float32 convolutions with different summation order: 1e-5.
             assert!(d < 1e-5, "{name} {}: max diff {d}", case["name"]);
         }
@@ -143,7 +139,7 @@ fn unet_outputs_match() {
             .expect("f")
             .to_vec1()
             .expect("v");
-        assert!(max_abs_diff(&out, &floats(&b["output"])) < 1e-5);
+        assert!(max_abs_diff_slices(&out, &floats(&b["output"])) < 1e-5);
     }
 }
 
@@ -173,12 +169,12 @@ fn full_sampling_with_recorded_noise_matches() {
     assert_eq!(k, noises.len());
     let x: Vec<f32> = x.flatten_all().expect("f").to_vec1().expect("v");
     let expect = floats(&s["chunk_normalized"]);
-    let d = max_abs_diff(&x, &expect);
+    let d = max_abs_diff_slices(&x, &expect);
     assert!(d < 2e-5, "normalised chunk max diff {d}");
     let mut un = x.clone();
     p.action_normalizer().unnormalize(&mut un);
     // Action range ~500 px: 2e-5 normalised is 5e-3 px.
-    assert!(max_abs_diff(&un, &floats(&s["chunk_unnormalized"])) < 1e-2);
+    assert!(max_abs_diff_slices(&un, &floats(&s["chunk_unnormalized"])) < 1e-2);
 }
 
 #[test]

@@ -32,6 +32,15 @@ pub fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
         .expect("same-shape f32 tensors")
 }
 
+/// The largest absolute elementwise difference of two same-length slices.
+pub fn max_abs_diff_slices(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
 /// Mean and sample standard deviation (n - 1) of `xs` (at least two values).
 pub fn mean_sd(xs: &[f64]) -> (f64, f64) {
     assert!(xs.len() >= 2, "a spread needs at least two seeds");

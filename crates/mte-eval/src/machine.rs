@@ -44,10 +44,15 @@ impl Machine {
         }
     }
 
-    /// This machine with its policies on `accelerator` (a device name such as `cuda:0`).
-    pub fn with_accelerator(self, accelerator: impl Into<String>) -> Self {
+    /// This machine with its policies on `device`: the accelerator recorded where it is not
+    /// the CPU.
+    pub fn with_policies_on(self, device: mte_policy::ComputeDevice) -> Self {
+        let accelerator = match device {
+            mte_policy::ComputeDevice::Cpu => None,
+            gpu => Some(gpu.to_string()),
+        };
         Self {
-            accelerator: Some(accelerator.into()),
+            accelerator,
             ..self
         }
     }
@@ -165,7 +170,9 @@ mod tests {
 
     #[test]
     fn an_accelerator_is_recorded_and_older_manifests_read_without_one() {
-        let gpu = Machine::detect().with_accelerator("cuda:0");
+        let cpu = Machine::detect().with_policies_on(mte_policy::ComputeDevice::Cpu);
+        assert_eq!(cpu, Machine::detect());
+        let gpu = Machine::detect().with_policies_on(mte_policy::ComputeDevice::Cuda(0));
         assert_eq!(gpu.accelerator.as_deref(), Some("cuda:0"));
         assert!(
             gpu.summary().ends_with(", policies on cuda:0"),

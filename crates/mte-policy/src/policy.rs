@@ -175,7 +175,11 @@ pub fn load_policy_on(
     match kind {
         "diffusion" => Ok(Box::new(crate::checkpoint::load(dir, device)?)),
         "act" if !device.is_cpu() => Err(PolicyError::Device {
-            device: format!("{:?}", device.location()),
+            // Named as `--device` spells it.
+            device: match device.location() {
+                candle_core::DeviceLocation::Cuda { gpu_id } => format!("cuda:{gpu_id}"),
+                other => format!("{other:?}"),
+            },
             reason: "ACT runs on the CPU only; load it with --device cpu".into(),
         }),
         "act" => Ok(Box::new(crate::act::ActPolicy::load(dir)?)),

@@ -74,7 +74,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
         Format::Json => writeln!(
             so,
             "{}",
-            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "execution": a.execution, "stride": a.stride, "sampling": a.sampling, "candidates": spread, "device": a.device.to_string(), "machine": machine(a.device)})
+            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "execution": a.execution, "stride": a.stride, "sampling": a.sampling, "candidates": spread, "device": a.device.to_string(), "machine": mte_eval::machine::Machine::detect().with_policies_on(a.device)})
         )?,
         Format::Text => {
             writeln!(
@@ -107,13 +107,4 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
         }
     }
     Ok(())
-}
-
-/// This machine, with the policy's device where it is not the CPU.
-fn machine(device: mte_policy::ComputeDevice) -> mte_eval::machine::Machine {
-    let m = mte_eval::machine::Machine::detect();
-    match device {
-        mte_policy::ComputeDevice::Cpu => m,
-        gpu => m.with_accelerator(gpu.to_string()),
-    }
 }

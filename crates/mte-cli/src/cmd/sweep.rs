@@ -65,10 +65,8 @@ pub fn execute(
 ) -> Result<SweepSummary> {
     let source = policy_source(device)?;
     let mut manifest = spec.manifest(git_commit(), now_unix());
-    if device != ComputeDevice::Cpu {
-        for m in &mut manifest.machines {
-            *m = m.clone().with_accelerator(device.to_string());
-        }
+    for m in &mut manifest.machines {
+        *m = m.clone().with_policies_on(device);
     }
     let run = RunDir::create(out, &spec.to_toml()?, &manifest, resume)?;
     let bar = Bar::new(!cli.no_progress && !cli.quiet);

@@ -103,6 +103,41 @@ fn unet_forward(bencher: divan::Bencher, preset: &str) {
     });
 }
 
+/// One U-Net forward on 64 samples, as the lockstep runner batches them (per-sample
+/// products, so each sample's bits are those of a batch of one): the peer is
+/// `tools/reference/bench_unet_lerobot.py`.
+#[divan::bench(args = ["cpu-image", "cpu-keypoints"], sample_count = 10)]
+fn unet_forward_batch_64(bencher: divan::Bencher, preset: &str) {
+    unet_forward_64(bencher, preset, mte_policy::kernels::Products::PerSample);
+}
+
+/// The same with one product for the whole batch (training's path, whose rounding may depend
+/// on the batch): what batch invariance costs.
+#[divan::bench(args = ["cpu-image", "cpu-keypoints"], sample_count = 10)]
+fn unet_forward_batch_64_fused(bencher: divan::Bencher, preset: &str) {
+    unet_forward_64(bencher, preset, mte_policy::kernels::Products::Fused);
+}
+
+fn unet_forward_64(bencher: divan::Bencher, preset: &str, products: mte_policy::kernels::Products) {
+    const B: usize = 64;
+    let p = frozen_policy(preset);
+    let g = if preset == "cpu-keypoints" {
+        2 * 18
+    } else {
+        2 * 66
+    };
+    let x = Tensor::randn(0f32, 1.0, (B, 16, 2), dev()).expect("x");
+    let cond = Tensor::randn(0f32, 1.0, (B, g), dev()).expect("cond");
+    let t = [50; B];
+    bencher.bench_local(|| {
+        p.unet()
+            .expect("U-Net")
+            .forward_with(&x, &t, &cond, products)
+            .map(sync)
+            .expect("forward")
+    });
+}
+
 #[divan::bench(args = ["paper", "cpu-image", "cpu-keypoints"], sample_count = 3)]
 fn chunk(bencher: divan::Bencher, preset: &str) {
     let p = frozen_policy(preset);

@@ -98,8 +98,11 @@ fn pixels_96_uniform_actions(bencher: divan::Bencher) {
 }
 
 /// One tick of `n` environments: `VecEnv` (the pool from `n >= PARALLEL_MIN_ENVS`) against a
-/// plain loop on one thread, uniform random actions, a reset every 300 ticks.
-#[divan::bench(args = [2, 16])]
+/// plain loop on one thread, uniform random actions, a reset every 300 ticks. 300 samples of 3
+/// ticks cover three whole episodes: a tick costs several times more once the blocks are in
+/// contact than in the first 100 ticks (divan's default sample count), where a pool's fixed
+/// cost per tick weighs most.
+#[divan::bench(args = [2, 16], sample_count = 300, sample_size = 3)]
 fn vec_env_tick(bencher: divan::Bencher, n: usize) {
     let mut v = mte_sim::VecEnv::new(n, PhysicsConfig::default());
     let acts: Vec<Vec<[f64; 2]>> = (0..n as u64).map(uniform_actions).collect();
@@ -115,7 +118,7 @@ fn vec_env_tick(bencher: divan::Bencher, n: usize) {
     });
 }
 
-#[divan::bench(args = [2, 16])]
+#[divan::bench(args = [2, 16], sample_count = 300, sample_size = 3)]
 fn plain_loop_tick(bencher: divan::Bencher, n: usize) {
     let mut envs: Vec<PushT> = (0..n).map(|_| PushT::default()).collect();
     let acts: Vec<Vec<[f64; 2]>> = (0..n as u64).map(uniform_actions).collect();

@@ -18,15 +18,13 @@ condition, under `torch.no_grad()`, with random inputs (its cost does not depend
 Timings on stdout (not a fixture); BENCHMARKS.md gives them beside mte's.
 """
 import argparse
-import statistics
 from pathlib import Path
 
 import torch
 from safetensors.torch import load_file
 
-from bench_pgd_lerobot import config
+from bench_pgd_lerobot import config, timed
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionConditionalUnet1d
-from timing import per_rep
 
 ASSETS = Path(__file__).resolve().parents[2] / "assets/policies"
 # preset -> (global condition width, bundled checkpoint whose U-Net is loaded)
@@ -68,9 +66,7 @@ def main():
                 with torch.no_grad():
                     net(x, t, global_cond=cond)
 
-            inner = max(1, 64 // b)
-            out = per_rep(forward, args.reps, inner)
-            med, best = statistics.median(out), min(out)
+            med, best = timed(forward, args.reps, max(1, 64 // b))
             print(
                 f"{preset} batch {b}: {med * 1e3:.3f} ms per forward (min {best * 1e3:.3f}), "
                 f"{med * 1e6 / b:.1f} us per sample, {args.threads} thread(s)"

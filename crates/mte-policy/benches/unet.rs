@@ -16,6 +16,7 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use mte_policy::config::{DiffusionConfig, ObsKind};
+use mte_policy::kernels::Products;
 use mte_policy::{DiffusionPolicy, Observation, Stats, StatsMap};
 use rand::SeedableRng;
 
@@ -86,21 +87,7 @@ fn frozen_policy(preset: &str) -> DiffusionPolicy {
 
 #[divan::bench(args = ["paper", "cpu-image", "cpu-keypoints"], sample_count = 10)]
 fn unet_forward(bencher: divan::Bencher, preset: &str) {
-    let p = frozen_policy(preset);
-    let g = if preset == "cpu-keypoints" {
-        2 * 18
-    } else {
-        2 * 66
-    };
-    let x = Tensor::randn(0f32, 1.0, (1, 16, 2), dev()).expect("x");
-    let cond = Tensor::randn(0f32, 1.0, (1, g), dev()).expect("cond");
-    bencher.bench_local(|| {
-        p.unet()
-            .expect("U-Net")
-            .forward(&x, &[50], &cond)
-            .map(sync)
-            .expect("forward")
-    });
+    forward_batch(bencher, preset, 1, Products::PerSample);
 }
 
 /// One U-Net forward on 64 samples, as the lockstep runner batches them (per-sample
@@ -108,27 +95,27 @@ fn unet_forward(bencher: divan::Bencher, preset: &str) {
 /// `tools/reference/bench_unet_lerobot.py`.
 #[divan::bench(args = ["cpu-image", "cpu-keypoints"], sample_count = 10)]
 fn unet_forward_batch_64(bencher: divan::Bencher, preset: &str) {
-    unet_forward_64(bencher, preset, mte_policy::kernels::Products::PerSample);
+    forward_batch(bencher, preset, 64, Products::PerSample);
 }
 
 /// The same with one product for the whole batch (training's path, whose rounding may depend
 /// on the batch): what batch invariance costs.
 #[divan::bench(args = ["cpu-image", "cpu-keypoints"], sample_count = 10)]
 fn unet_forward_batch_64_fused(bencher: divan::Bencher, preset: &str) {
-    unet_forward_64(bencher, preset, mte_policy::kernels::Products::Fused);
+    forward_batch(bencher, preset, 64, Products::Fused);
 }
 
-fn unet_forward_64(bencher: divan::Bencher, preset: &str, products: mte_policy::kernels::Products) {
-    const B: usize = 64;
+/// One U-Net forward of `preset` on `batch` random noisy chunks at timestep 50.
+fn forward_batch(bencher: divan::Bencher, preset: &str, batch: usize, products: Products) {
     let p = frozen_policy(preset);
     let g = if preset == "cpu-keypoints" {
         2 * 18
     } else {
         2 * 66
     };
-    let x = Tensor::randn(0f32, 1.0, (B, 16, 2), dev()).expect("x");
-    let cond = Tensor::randn(0f32, 1.0, (B, g), dev()).expect("cond");
-    let t = [50; B];
+    let x = Tensor::randn(0f32, 1.0, (batch, 16, 2), dev()).expect("x");
+    let cond = Tensor::randn(0f32, 1.0, (batch, g), dev()).expect("cond");
+    let t = vec![50; batch];
     bencher.bench_local(|| {
         p.unet()
             .expect("U-Net")

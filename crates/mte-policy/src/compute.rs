@@ -8,7 +8,7 @@
 use std::fmt;
 use std::str::FromStr;
 
-use candle_core::Device;
+use candle_core::{Device, DeviceLocation};
 
 use crate::error::PolicyError;
 
@@ -42,6 +42,16 @@ impl ComputeDevice {
                 device: self.to_string(),
                 reason: e.to_string(),
             }),
+        }
+    }
+
+    /// The device at candle's `location`, the inverse of [`ComputeDevice::open`]; `None` for
+    /// a location mte does not name (Metal).
+    pub fn from_location(location: DeviceLocation) -> Option<Self> {
+        match location {
+            DeviceLocation::Cpu => Some(Self::Cpu),
+            DeviceLocation::Cuda { gpu_id } => Some(Self::Cuda(gpu_id)),
+            DeviceLocation::Metal { .. } => None,
         }
     }
 }
@@ -92,6 +102,21 @@ mod tests {
             assert!(e.contains("cpu, cuda or cuda:N"), "{bad}: {e}");
             assert!(e.contains(&format!("{bad:?}")), "{bad}: {e}");
         }
+    }
+
+    #[test]
+    fn locations_name_the_devices_they_open() {
+        assert_eq!(
+            ComputeDevice::from_location(DeviceLocation::Cpu),
+            Some(ComputeDevice::Cpu)
+        );
+        let gpu = ComputeDevice::from_location(DeviceLocation::Cuda { gpu_id: 3 });
+        assert_eq!(gpu, Some(ComputeDevice::Cuda(3)));
+        assert_eq!(gpu.map(|d| d.to_string()).as_deref(), Some("cuda:3"));
+        assert_eq!(
+            ComputeDevice::from_location(DeviceLocation::Metal { gpu_id: 0 }),
+            None
+        );
     }
 
     #[test]

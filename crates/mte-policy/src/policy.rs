@@ -176,10 +176,8 @@ pub fn load_policy_on(
         "diffusion" => Ok(Box::new(crate::checkpoint::load(dir, device)?)),
         "act" if !device.is_cpu() => Err(PolicyError::Device {
             // Named as `--device` spells it.
-            device: match device.location() {
-                candle_core::DeviceLocation::Cuda { gpu_id } => format!("cuda:{gpu_id}"),
-                other => format!("{other:?}"),
-            },
+            device: crate::ComputeDevice::from_location(device.location())
+                .map_or_else(|| format!("{:?}", device.location()), |d| d.to_string()),
             reason: "ACT runs on the CPU only; load it with --device cpu".into(),
         }),
         "act" => Ok(Box::new(crate::act::ActPolicy::load(dir)?)),

@@ -139,7 +139,8 @@ pub enum EvalCommand {
 /// `mte eval policy`
 #[derive(Debug, Args)]
 pub struct EvalPolicyArgs {
-    /// Checkpoint directory (config.json + model.safetensors).
+    /// Checkpoint directory (config.json + model.safetensors), or `expert:pusht`: the
+    /// scripted expert re-planning at every query, as a noise-free chunked policy.
     #[arg(long, value_name = "DIR")]
     pub checkpoint: PathBuf,
     /// First reset seed (Diffusion Policy's test seeds start at 100000).

@@ -31,6 +31,7 @@ pub mod corruption;
 pub mod dispersion;
 pub mod environment;
 pub mod episode;
+pub mod expert_policy;
 pub mod film;
 mod label;
 pub mod lockstep;

@@ -37,6 +37,7 @@ use serde::{Deserialize, Serialize};
 use crate::Reporter;
 use crate::corruption::{CorruptionSpec, Fault, Schedule, SensorFault};
 use crate::environment::{EnvTarget, Environment};
+use crate::expert_policy::{PushTExpertPolicy, is_expert_policy};
 use crate::label::{policy_label, slug};
 use crate::lockstep::run_lockstep;
 use crate::pusht::{EpisodeSpec, Execution, RolloutError, run_episode};
@@ -366,13 +367,28 @@ pub trait PolicySource: Sync {
     fn load(&self, path: &str) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError>;
 }
 
-/// Loads checkpoint directories of any known policy type ([`mte_policy::load_policy`], CPU).
+/// Loads a policy by name: [`EXPERT_POLICY`](crate::expert_policy::EXPERT_POLICY) (with
+/// optional settings) is the scripted PushT expert
+/// ([`PushTExpertPolicy`], always on the CPU); anything else is a checkpoint directory of a
+/// known policy type, loaded onto `device` ([`mte_policy::load_policy_on`]).
+pub fn load_named_policy(
+    path: &Path,
+    device: &candle_core::Device,
+) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError> {
+    if let Some(name) = path.to_str().filter(|n| is_expert_policy(n)) {
+        return Ok(Box::new(name.parse::<PushTExpertPolicy>()?));
+    }
+    mte_policy::load_policy_on(path, device)
+}
+
+/// Loads checkpoint directories of any known policy type ([`mte_policy::load_policy`], CPU),
+/// and [`EXPERT_POLICY`](crate::expert_policy::EXPERT_POLICY).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct CheckpointSource;
 
 impl PolicySource for CheckpointSource {
     fn load(&self, path: &str) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError> {
-        mte_policy::load_policy(Path::new(path))
+        load_named_policy(Path::new(path), &candle_core::Device::Cpu)
     }
 }
 
@@ -384,7 +400,7 @@ pub struct CheckpointSourceOn(pub candle_core::Device);
 
 impl PolicySource for CheckpointSourceOn {
     fn load(&self, path: &str) -> Result<Box<dyn ChunkPolicy + Send + Sync>, PolicyError> {
-        mte_policy::load_policy_on(Path::new(path), &self.0)
+        load_named_policy(Path::new(path), &self.0)
     }
 }
 

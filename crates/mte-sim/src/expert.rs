@@ -60,6 +60,14 @@ pub struct ExpertConfig {
     pub step_cost: f64,
     /// Standard deviation of uniform noise added to executed targets (px); 0 = none.
     pub action_noise: f64,
+    /// Whether a plan made while the agent is already inside a contact's push corridor (within
+    /// half a `contact_spacing` of the push line, between the pre-contact point and the
+    /// longest push's end) continues that push from where the agent is, instead of backing
+    /// out to approach again. Off for the demonstrations (the expert commits to each
+    /// primitive and re-plans only when it ends, so it never plans mid-push); on for an
+    /// expert that re-plans at every query from the observation alone.
+    #[serde(default)]
+    pub resume_pushes: bool,
 }
 
 impl Default for ExpertConfig {
@@ -75,6 +83,7 @@ impl Default for ExpertConfig {
             angle_weight: 60.0,
             step_cost: 0.5,
             action_noise: 0.0,
+            resume_pushes: false,
         }
     }
 }
@@ -241,7 +250,11 @@ impl Expert {
             // Approach once, then branch the push lengths from its end state.
             let mut approach = std::mem::take(&mut self.scratch);
             approach.clear();
-            self.approach_targets(&snap, contact, &mut approach);
+            let resumed = self.resumed_depth(&snap, contact);
+            if resumed.is_none() {
+                self.approach_targets(&snap, contact, &mut approach);
+            }
+            let start = resumed.unwrap_or(self.config.clearance + AGENT_RADIUS);
             self.model.restore(&snap)?;
             for a in &approach {
                 self.model.step(*a)?;
@@ -249,8 +262,11 @@ impl Expert {
             let after_approach = self.model.snapshot();
             let block = after_approach.state.block;
             for &len in &lengths {
+                if AGENT_RADIUS - len >= start {
+                    continue; // a resumed push already past this length
+                }
                 let mut targets = approach.clone();
-                self.push_targets(&block, contact, len, &mut targets);
+                self.push_targets(&block, contact, start, len, &mut targets);
                 self.model.restore(&after_approach)?;
                 let mut success = false;
                 for a in &targets[approach.len()..] {
@@ -321,10 +337,38 @@ impl Expert {
         go(out, pre);
     }
 
-    /// Push targets: from the pre-contact point along `-normal` until the agent's centre is
-    /// `len` px past first touch, in `push_step` increments, then hold.
-    fn push_targets(&self, block: &Pose, contact: Contact, len: f64, out: &mut Vec<[f64; 2]>) {
-        let start = self.config.clearance + AGENT_RADIUS;
+    /// With [`ExpertConfig::resume_pushes`], the agent's offset along `contact`'s outward
+    /// normal (px from the outline, the agent's centre) when it is inside that contact's push
+    /// corridor; `None` otherwise.
+    fn resumed_depth(&self, snap: &Snapshot, contact: Contact) -> Option<f64> {
+        if !self.config.resume_pushes {
+            return None;
+        }
+        let block = snap.state.block;
+        let (s, c) = block.theta.sin_cos();
+        let (dx, dy) = (snap.state.agent[0] - block.x, snap.state.agent[1] - block.y);
+        let local = [c * dx + s * dy, -s * dx + c * dy];
+        let rel = [local[0] - contact.point[0], local[1] - contact.point[1]];
+        let depth = rel[0] * contact.normal[0] + rel[1] * contact.normal[1];
+        let lateral = rel[0] * contact.normal[1] - rel[1] * contact.normal[0];
+        let longest = self.config.push_lengths.iter().copied().fold(0.0, f64::max);
+        let inside = lateral.abs() <= 0.5 * self.config.contact_spacing
+            && depth <= self.config.clearance + AGENT_RADIUS
+            && depth > AGENT_RADIUS - longest;
+        inside.then_some(depth)
+    }
+
+    /// Push targets: from offset `start` (px along the outward normal; the pre-contact point
+    /// unless a push is resumed) along `-normal` until the agent's centre is `len` px past
+    /// first touch, in `push_step` increments, then hold.
+    fn push_targets(
+        &self,
+        block: &Pose,
+        contact: Contact,
+        start: f64,
+        len: f64,
+        out: &mut Vec<[f64; 2]>,
+    ) {
         let end = AGENT_RADIUS - len;
         let n = ((start - end) / self.config.push_step).ceil().max(1.0) as usize;
         let mut last = [0.0; 2];
@@ -340,5 +384,82 @@ impl Expert {
         for _ in 0..self.config.hold_steps {
             out.push(last);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An agent touching the stem's right side next to a contact point, the block at the goal.
+    fn touching(resume_pushes: bool) -> (Expert, Snapshot, Contact) {
+        let expert = Expert::new(ExpertConfig {
+            resume_pushes,
+            ..ExpertConfig::default()
+        })
+        .expect("valid");
+        let contact = *expert
+            .contacts
+            .iter()
+            .find(|c| c.normal == [1.0, 0.0] && (c.point[1] - 75.0).abs() < 4.0)
+            .expect("a contact on the stem's right side");
+        let block = crate::geometry::GOAL;
+        let body = [contact.point[0] + AGENT_RADIUS, contact.point[1] + 1.0];
+        let mut env = PushT::new(PhysicsConfig::default());
+        env.reset_to_pose(crate::env::State {
+            agent: block.apply(body),
+            block,
+        })
+        .expect("reset");
+        (expert, env.snapshot(), contact)
+    }
+
+    #[test]
+    fn a_push_is_resumed_only_from_inside_its_corridor() {
+        let (expert, snap, contact) = touching(true);
+        let depth = expert
+            .resumed_depth(&snap, contact)
+            .expect("inside the corridor");
+        assert!((depth - AGENT_RADIUS).abs() < 0.5, "depth {depth}");
+        let (off, _, _) = touching(false);
+        assert_eq!(off.resumed_depth(&snap, contact), None, "off by default");
+        // Far from the block: no corridor.
+        let mut away = snap;
+        away.state.agent = [20.0, 20.0];
+        assert_eq!(expert.resumed_depth(&away, contact), None);
+        // Beside the corridor (a full contact spacing along the edge).
+        let mut beside = snap;
+        let p = snap
+            .state
+            .block
+            .apply([contact.point[0] + AGENT_RADIUS, contact.point[1] + 8.0]);
+        beside.state.agent = p;
+        assert_eq!(expert.resumed_depth(&beside, contact), None);
+    }
+
+    #[test]
+    fn a_resumed_push_starts_where_the_agent_is_and_moves_inward() {
+        let (expert, snap, contact) = touching(true);
+        let depth = expert.resumed_depth(&snap, contact).expect("inside");
+        let block = snap.state.block;
+        let mut out = Vec::new();
+        expert.push_targets(&block, contact, depth, 15.0, &mut out);
+        let agent = snap.state.agent;
+        let first = (out[0][0] - agent[0]).hypot(out[0][1] - agent[1]);
+        assert!(
+            first <= expert.config.push_step + 1.5,
+            "first target {first} px away"
+        );
+        // Each target deeper along -normal than the last, until the hold.
+        let n = out.len() - expert.config.hold_steps;
+        let along = |p: [f64; 2]| {
+            let (s, c) = block.theta.sin_cos();
+            let (dx, dy) = (p[0] - block.x, p[1] - block.y);
+            c * dx + s * dy // body x: the stem's right side has normal +x
+        };
+        for w in out[..n].windows(2) {
+            assert!(along(w[1]) < along(w[0]), "{w:?}");
+        }
+        assert!((along(out[n - 1]) - (contact.point[0] + AGENT_RADIUS - 15.0)).abs() < 1e-9);
     }
 }

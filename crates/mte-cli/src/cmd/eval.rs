@@ -25,7 +25,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
         .device
         .open()
         .with_context(|| format!("--device {}", a.device))?;
-    let p = mte_policy::load_policy_on(&a.checkpoint, &device)
+    let p = mte_eval::sweep::load_named_policy(&a.checkpoint, &device)
         .with_context(|| format!("loading {} on {}", a.checkpoint.display(), a.device))?;
     let needs = p.needs();
     let bar = Bar::new(!cli.no_progress && !cli.quiet);

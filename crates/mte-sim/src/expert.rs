@@ -220,6 +220,12 @@ impl Expert {
         &self.config
     }
 
+    /// The targets of the plan in progress still to execute, next first (empty when the next
+    /// [`Expert::act`] plans anew). Its last target is where the committed primitive ends.
+    pub fn planned(&self) -> impl ExactSizeIterator<Item = &[f64; 2]> {
+        self.plan.iter()
+    }
+
     /// Forget the current plan (call after a reset).
     pub fn reset(&mut self) {
         self.plan.clear();

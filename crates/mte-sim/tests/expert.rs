@@ -78,3 +78,26 @@ fn invalid_config_names_the_field() {
             .contains("action_noise")
     );
 }
+
+#[test]
+fn planned_is_the_rest_of_the_committed_primitive() {
+    let mut env = PushT::default();
+    env.reset(100_000, ResetStream::Legacy).expect("reset");
+    let mut expert = Expert::new(ExpertConfig::default()).expect("valid");
+    assert_eq!(
+        expert.planned().len(),
+        0,
+        "nothing planned before the first act"
+    );
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let first = expert.act(&env, &mut rng).expect("act");
+    env.step(first).expect("step");
+    let rest: Vec<[f64; 2]> = expert.planned().copied().collect();
+    assert!(!rest.is_empty());
+    for want in rest {
+        let got = expert.act(&env, &mut rng).expect("act");
+        assert_eq!(got, want, "the plan executes as announced");
+        env.step(got).expect("step");
+    }
+    assert_eq!(expert.planned().len(), 0, "the primitive is used up");
+}

@@ -1,5 +1,6 @@
 //! Scripted expert on the Diffusion Policy test seeds: `cargo run --release -p mte-sim
-//! --example expert_eval -- [FIRST_SEED] [N]`.
+//! --example expert_eval -- [FIRST_SEED] [N]`; `TRAVEL_STEP` and `PUSH_STEP` (px) set the
+//! expert's step sizes (defaults 45 and 8; the demonstrations used 20 and 6).
 #![allow(clippy::print_stdout, clippy::unwrap_used)]
 use mte_sim::{Expert, ExpertConfig, PushT, ResetStream};
 use rand::SeedableRng;
@@ -12,7 +13,14 @@ fn main() {
     let first = args.first().copied().unwrap_or(100_000);
     let n = args.get(1).copied().unwrap_or(50);
     let mut env = PushT::default();
-    let mut expert = Expert::new(ExpertConfig::default()).unwrap();
+    let travel = std::env::var("TRAVEL_STEP").map_or(45.0, |v| v.parse().unwrap());
+    let push = std::env::var("PUSH_STEP").map_or(8.0, |v| v.parse().unwrap());
+    let mut expert = Expert::new(ExpertConfig {
+        travel_step: travel,
+        push_step: push,
+        ..ExpertConfig::default()
+    })
+    .unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     let (mut succ, mut sum_max) = (0, 0.0);
     let t0 = std::time::Instant::now();

@@ -26,23 +26,12 @@
 
 use std::str::FromStr;
 
+use mte_policy::error::config_err;
 use mte_policy::{ChunkPolicy, ObsNeeds, Observation, PolicyError};
 use mte_sim::expert::{Expert, ExpertConfig};
-use mte_sim::geometry::{BAR, DT, STEM, SUBSTEPS};
+use mte_sim::geometry::{BAR, CONTROL_HZ, STEM};
 use mte_sim::{PhysicsConfig, Pose, PushT, Snapshot, State};
 use rand::RngCore;
-
-fn config_err(
-    field: &'static str,
-    value: impl std::fmt::Debug,
-    expected: impl Into<String>,
-) -> PolicyError {
-    PolicyError::Config {
-        field,
-        value: format!("{value:?}"),
-        expected: expected.into(),
-    }
-}
 
 fn input_err(name: &'static str, reason: impl Into<String>) -> PolicyError {
     PolicyError::Input {
@@ -232,7 +221,7 @@ fn snapshot(history: &[Observation]) -> Result<Snapshot, PolicyError> {
         .ok_or_else(|| input_err("env_state", "missing: expected the 16 block keypoints"))?;
     let block = pose_from_keypoints(kp)?;
     let now = agent(newest)?;
-    let period = DT * SUBSTEPS as f64;
+    let period = 1.0 / CONTROL_HZ;
     let agent_vel = match history.len() {
         0 | 1 => [0.0; 2],
         n => {

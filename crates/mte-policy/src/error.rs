@@ -63,7 +63,9 @@ pub enum PolicyError {
     },
 }
 
-pub(crate) fn config_err(
+/// A [`PolicyError::Config`] for `field` holding `value` (printed with `Debug`), where
+/// `expected` was wanted.
+pub fn config_err(
     field: &'static str,
     value: impl std::fmt::Debug,
     expected: impl Into<String>,

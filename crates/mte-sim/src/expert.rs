@@ -350,10 +350,7 @@ impl Expert {
         if !self.config.resume_pushes {
             return None;
         }
-        let block = snap.state.block;
-        let (s, c) = block.theta.sin_cos();
-        let (dx, dy) = (snap.state.agent[0] - block.x, snap.state.agent[1] - block.y);
-        let local = [c * dx + s * dy, -s * dx + c * dy];
+        let local = snap.state.block.to_body(snap.state.agent);
         let rel = [local[0] - contact.point[0], local[1] - contact.point[1]];
         let depth = rel[0] * contact.normal[0] + rel[1] * contact.normal[1];
         let lateral = rel[0] * contact.normal[1] - rel[1] * contact.normal[0];
@@ -458,11 +455,8 @@ mod tests {
         );
         // Each target deeper along -normal than the last, until the hold.
         let n = out.len() - expert.config.hold_steps;
-        let along = |p: [f64; 2]| {
-            let (s, c) = block.theta.sin_cos();
-            let (dx, dy) = (p[0] - block.x, p[1] - block.y);
-            c * dx + s * dy // body x: the stem's right side has normal +x
-        };
+        // Body x: the stem's right side has normal +x.
+        let along = |p: [f64; 2]| block.to_body(p)[0];
         for w in out[..n].windows(2) {
             assert!(along(w[1]) < along(w[0]), "{w:?}");
         }

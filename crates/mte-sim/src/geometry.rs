@@ -75,6 +75,14 @@ impl Pose {
         [self.x + c * p[0] - s * p[1], self.y + s * p[0] + c * p[1]]
     }
 
+    /// World coordinates to body coordinates: the inverse of [`Pose::apply`].
+    #[inline]
+    pub fn to_body(&self, p: [f64; 2]) -> [f64; 2] {
+        let (s, c) = self.theta.sin_cos();
+        let (dx, dy) = (p[0] - self.x, p[1] - self.y);
+        [c * dx + s * dy, -s * dx + c * dy]
+    }
+
     /// World position of the centre of gravity.
     #[inline]
     pub fn cog(&self) -> [f64; 2] {
@@ -124,6 +132,20 @@ mod tests {
         };
         let q = Pose::from_cog(p.cog(), p.theta);
         assert!((p.x - q.x).abs() < 1e-12 && (p.y - q.y).abs() < 1e-12);
+    }
+
+    #[test]
+    fn to_body_inverts_apply() {
+        let p = Pose {
+            x: 12.0,
+            y: -3.0,
+            theta: 2.3,
+        };
+        let b = p.to_body(p.apply([7.5, -40.0]));
+        assert!(
+            (b[0] - 7.5).abs() < 1e-12 && (b[1] + 40.0).abs() < 1e-12,
+            "{b:?}"
+        );
     }
 
     #[test]

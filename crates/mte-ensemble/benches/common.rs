@@ -2,7 +2,10 @@
 
 use std::fmt;
 
-use mte_ensemble::{Aggregator, ChunkGeometry, QueryMeta, TemporalEnsembler};
+use mte_ensemble::{
+    Aggregate, AggregateError, Aggregator, Candidates, ChunkGeometry, QueryMeta, TemporalEnsembler,
+    Workspace,
+};
 
 /// One benchmark configuration: aggregator, chunk length `t_p`, action dim `d`, stride `h`.
 /// `t_o` is 2 for `t_p = 16` (Diffusion Policy) and 1 for `t_p = 100` (ACT).
@@ -36,10 +39,27 @@ impl fmt::Display for Config {
     }
 }
 
+/// `Aggregator`'s values without its running weights: the ensembler gathers the candidates
+/// at every step, as it did for every aggregator before running sums (the reference beside
+/// them in one run).
+#[allow(dead_code)] // used by the `step` bench only
+pub struct Gathering(pub Aggregator);
+
+impl Aggregate for Gathering {
+    fn aggregate(
+        &self,
+        c: &Candidates<'_>,
+        ws: &mut Workspace,
+        out: &mut [f32],
+    ) -> Result<(), AggregateError> {
+        self.0.aggregate(c, ws, out)
+    }
+}
+
 /// A control loop over pre-generated chunks: `step` does what a controller does at one
 /// control time (insert the chunk when a query fires, then ask for the action).
-pub struct Loop {
-    pub ens: TemporalEnsembler,
+pub struct Loop<A: Aggregate = Aggregator> {
+    pub ens: TemporalEnsembler<A>,
     chunks: Vec<Vec<f32>>,
     h: u64,
     tau: u64,
@@ -49,8 +69,15 @@ pub struct Loop {
 
 impl Loop {
     pub fn new(cfg: Config) -> Self {
+        Loop::with(cfg, cfg.agg)
+    }
+}
+
+impl<A: Aggregate> Loop<A> {
+    /// The loop of `cfg`'s geometry with `agg` in place of `cfg.agg`.
+    pub fn with(cfg: Config, agg: A) -> Self {
         let g = cfg.geometry();
-        let ens = TemporalEnsembler::new(g, cfg.d, cfg.agg).expect("valid ensembler");
+        let ens = TemporalEnsembler::new(g, cfg.d, agg).expect("valid ensembler");
         // 64 distinct chunks of smooth values plus deterministic jitter.
         let chunks = (0..64)
             .map(|k| {

@@ -2,12 +2,16 @@
 //! configurations, and the median and the exp-weighted mean over the full grid
 //! (`T_p` 16/100, `d` 2/7/14, `h` 1/2/8).
 //!
+//! `running_sums` times the means served from per-time running sums beside the same means
+//! gathered at every step (and beside a step whose candidates are then read, as an
+//! evaluation's observer does).
+//!
 //! Run: `cargo bench -p mte-ensemble --bench step`. For p50/p99 per step over the full
 //! aggregator grid, see the `latency` bench.
 
 mod common;
 
-use common::{CHUNKS, Config, DIMS, Loop, STRIDES};
+use common::{CHUNKS, Config, DIMS, Gathering, Loop, STRIDES};
 use mte_ensemble::Aggregator;
 
 fn main() {
@@ -57,4 +61,49 @@ fn every_aggregator(bencher: divan::Bencher, cfg: &Config) {
 fn median_and_ewm_grid(bencher: divan::Bencher, cfg: &Config) {
     let mut l = Loop::new(*cfg);
     bencher.bench_local(|| l.step());
+}
+
+fn means() -> Vec<Config> {
+    let mut v = Vec::new();
+    for agg in [Aggregator::default(), Aggregator::Mean] {
+        v.push(Config {
+            agg,
+            t_p: 16,
+            d: 7,
+            h: 2,
+        });
+        v.push(Config {
+            agg,
+            t_p: 100,
+            d: 14,
+            h: 1,
+        });
+    }
+    v
+}
+
+/// The means from running sums (the default for `ewm` and `mean`).
+#[divan::bench(args = means())]
+fn running_sums(bencher: divan::Bencher, cfg: &Config) {
+    let mut l = Loop::new(*cfg);
+    bencher.bench_local(|| l.step());
+}
+
+/// The same means gathered at every step (the path before running sums, and the one every
+/// other aggregator takes).
+#[divan::bench(args = means())]
+fn running_sums_gathered(bencher: divan::Bencher, cfg: &Config) {
+    let mut l = Loop::with(*cfg, Gathering(cfg.agg));
+    bencher.bench_local(|| l.step());
+}
+
+/// Running sums, then the step's candidates read (`last_candidates`), as the evaluation
+/// runner's observer does at every step.
+#[divan::bench(args = means())]
+fn running_sums_then_candidates(bencher: divan::Bencher, cfg: &Config) {
+    let mut l = Loop::new(*cfg);
+    bencher.bench_local(|| {
+        let a = l.step();
+        a + l.ens.last_candidates().0.values()[0]
+    });
 }

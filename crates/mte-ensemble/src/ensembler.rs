@@ -8,6 +8,7 @@ use crate::aggregate::{Aggregate, Aggregator, Candidates, Workspace};
 use crate::bracket::{self, BracketReport};
 use crate::error::EnsembleError;
 use crate::geometry::ChunkGeometry;
+use crate::running::RunningSums;
 
 /// What the caller knows about one query. The evaluator knows which queries it corrupted; a
 /// deployed controller leaves the default (trusted).
@@ -141,6 +142,9 @@ const LANES: usize = 4;
 #[derive(Debug, Clone, Copy, Default)]
 struct ChunkSlot {
     t_query: u64,
+    /// Chunks flagged corrupted inserted before this one since the last reset: the corrupted
+    /// count of a run of live chunks is a difference of two of these.
+    corrupted_before: u64,
     corrupted: bool,
     /// Whether every executable value is finite (else see `row_finite`).
     finite: bool,
@@ -222,6 +226,13 @@ fn chunk_finite(values: &[f32]) -> bool {
 /// specialised for that width. A ring too large for L1 (ACT's `T_p = 100`) copies the
 /// candidates of 2, 7 or 14 coordinates in at most two contiguous runs of slots, without a
 /// per-row finiteness test while every candidate chunk is finite.
+///
+/// An aggregator that is a weighted mean summed in candidate order
+/// ([`Aggregate::running_weights`]: `ewm` and `mean`) is also summed per control time as
+/// chunks arrive, into a ring of `span + lookahead` times; a step without a hook or bracket
+/// diagnostics then divides two sums instead of gathering, and gives the gathered mean's
+/// bits. Its candidates are gathered only if [`last_candidates`](Self::last_candidates)
+/// asks for them.
 #[derive(Debug, Clone)]
 pub struct TemporalEnsembler<A: Aggregate = Aggregator> {
     geometry: ChunkGeometry,
@@ -244,6 +255,8 @@ pub struct TemporalEnsembler<A: Aggregate = Aggregator> {
     row_finite: Vec<bool>,
     head: usize,
     len: usize,
+    /// Chunks flagged corrupted inserted since the last reset.
+    corrupted_inserted: u64,
     last_query: Option<u64>,
     /// Latest control time served; no earlier one may be asked for.
     cursor: Option<u64>,
@@ -252,6 +265,11 @@ pub struct TemporalEnsembler<A: Aggregate = Aggregator> {
     cand_corrupted: Vec<bool>,
     /// Candidates aggregated by the last successful step (0 before the first).
     last_used: usize,
+    /// Per-time sums when the aggregator is a running mean.
+    running: Option<RunningSums>,
+    /// A step served from `running` whose candidates are not gathered yet: its time and
+    /// candidate count.
+    deferred: Option<(u64, usize)>,
     out: Vec<f32>,
     workspace: Workspace,
 }
@@ -277,6 +295,10 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         let lookahead = options.lookahead.unwrap_or(geometry.h).max(1);
         let capacity = span + lookahead;
         let stride = dim.div_ceil(LANES) * LANES;
+        let mut workspace = Workspace::new(span, stride);
+        let running = aggregator
+            .running_weights()
+            .map(|r| RunningSums::new(r, span, capacity, dim, &mut workspace));
         Ok(Self {
             geometry,
             dim,
@@ -292,13 +314,16 @@ impl<A: Aggregate> TemporalEnsembler<A> {
             row_finite: vec![true; capacity * span],
             head: 0,
             len: 0,
+            corrupted_inserted: 0,
             last_query: None,
             cursor: None,
             cand: vec![0.0; span * stride],
             cand_corrupted: vec![false; span],
             last_used: 0,
+            running,
+            deferred: None,
             out: vec![0.0; dim],
-            workspace: Workspace::new(span, stride),
+            workspace,
         })
     }
 
@@ -327,10 +352,23 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         self.len
     }
 
-    /// The candidates the last successful step aggregated (after any hook), oldest first,
-    /// with their corrupted flags: what a runtime monitor or an observer reads. Empty before
-    /// the first step and after [`reset`](Self::reset).
-    pub fn last_candidates(&self) -> (Candidates<'_>, &[bool]) {
+    /// The candidates the last step aggregated (after any hook), oldest first, with their
+    /// corrupted flags: what a runtime monitor or an observer reads. Empty before the first
+    /// step, after a step that failed and after [`reset`](Self::reset). A step served from
+    /// running sums (see the type's documentation) gathers its candidates here, once.
+    pub fn last_candidates(&mut self) -> (Candidates<'_>, &[bool]) {
+        if let Some((tau, used)) = self.deferred.take() {
+            // The chunks covering `tau` are all still held (nothing is evicted before the
+            // cursor, `tau`); any inserted since the step are newer, so they come after the
+            // step's `used` candidates.
+            let g = if self.large {
+                self.gather_large(tau)
+            } else {
+                self.gather_any(tau)
+            };
+            debug_assert!(g.used >= used);
+            self.last_used = used;
+        }
         let used = self.last_used;
         (
             Candidates::from_checked(&self.cand[..used * self.stride], self.dim, self.stride),
@@ -341,8 +379,13 @@ impl<A: Aggregate> TemporalEnsembler<A> {
     /// Forgets every chunk and the time cursor, for a new episode. Does not allocate.
     pub fn reset(&mut self) {
         self.last_used = 0;
+        self.deferred = None;
+        if let Some(run) = &mut self.running {
+            run.clear();
+        }
         self.head = 0;
         self.len = 0;
+        self.corrupted_inserted = 0;
         self.last_query = None;
         self.cursor = None;
     }
@@ -438,11 +481,17 @@ impl<A: Aggregate> TemporalEnsembler<A> {
                 *flag = all_finite(row);
             }
         }
+        if let Some(run) = &mut self.running {
+            let flags = (!finite).then(|| &self.row_finite[slot * span..(slot + 1) * span]);
+            run.add_chunk(t_query, executable, meta.corrupted, flags);
+        }
         self.slots[slot] = ChunkSlot {
             t_query,
+            corrupted_before: self.corrupted_inserted,
             corrupted: meta.corrupted,
             finite,
         };
+        self.corrupted_inserted += u64::from(meta.corrupted);
         self.len += 1;
         self.last_query = Some(t_query);
         Ok(())
@@ -487,6 +536,14 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         }
         self.cursor = Some(tau);
         self.evict_before(tau);
+        self.last_used = 0;
+        self.deferred = None;
+        if !hook.active()
+            && !self.bracket_diagnostics
+            && let Some(report) = self.running_step(tau)?
+        {
+            return Ok((report, None));
+        }
         let g = if self.large {
             self.gather_large(tau)
         } else {
@@ -535,6 +592,51 @@ impl<A: Aggregate> TemporalEnsembler<A> {
             None
         };
         Ok((report, bracket))
+    }
+
+    /// The step at `tau` from the running sums: `None` when there are none for `tau` (no
+    /// running mean, or a time whose slot was taken), and the caller gathers.
+    fn running_step(&mut self, tau: u64) -> Result<Option<StepReport>, EnsembleError> {
+        let Some((s, total, sums)) = self.running.as_ref().and_then(|r| r.get(tau)) else {
+            return Ok(None);
+        };
+        // The covering chunks are the live ones from the head (`evict_before(tau)` left none
+        // older) to the newest queried at or before `tau` (those queried ahead are at the
+        // tail: at most the lookahead).
+        let mut m = self.len;
+        while m > 0 && self.slots[self.wrap(self.head + m - 1)].t_query > tau {
+            m -= 1;
+        }
+        let (used, excluded) = (s.used as usize, s.excluded as usize);
+        debug_assert_eq!(m, used + excluded, "running sums out of step at {tau}");
+        if m == 0 || m != used + excluded {
+            return Ok(None); // unreachable (see `running`): gather rather than guess
+        }
+        if used == 0 {
+            return Err(EnsembleError::NoFiniteCandidates { tau, excluded: m });
+        }
+        // `weighted_mean`'s last operation.
+        for (o, a) in self.out.iter_mut().zip(sums) {
+            *o = (a / total) as f32;
+        }
+        let (first, last) = (
+            self.slots[self.head],
+            self.slots[self.wrap(self.head + m - 1)],
+        );
+        let q =
+            (last.corrupted_before + u64::from(last.corrupted) - first.corrupted_before) as usize;
+        let excluded_corrupted = s.excluded_corrupted as usize;
+        self.deferred = Some((tau, used));
+        Ok(Some(StepReport {
+            tau,
+            m,
+            q,
+            excluded,
+            excluded_corrupted,
+            regime: Regime::of(q - excluded_corrupted, used),
+            oldest_query: first.t_query,
+            newest_query: last.t_query,
+        }))
     }
 
     /// [`gather`](Self::gather) with the action dimension as a constant where a
@@ -993,6 +1095,34 @@ mod tests {
         assert_eq!(e.live_chunks(), 0);
         e.insert(0, &[2.0; 3], QueryMeta::CLEAN).unwrap();
         assert_eq!(e.action(0).unwrap().action, &[2.0]);
+    }
+
+    /// Chunks inserted far apart before the first action can take a time's running-sum slot
+    /// (the ring holds `span + lookahead` times); that time is then gathered, and its action
+    /// and counts are still right.
+    #[test]
+    fn a_time_whose_running_slot_was_taken_is_gathered() {
+        let g = ChunkGeometry::new(4, 1, 1).unwrap(); // span 4, lookahead 1: 5 slots
+        let mut e = TemporalEnsembler::new(g, 1, Aggregator::Mean).unwrap();
+        assert!(e.running.is_some());
+        e.insert(0, &[1.0, 2.0, 3.0, 4.0], QueryMeta::CLEAN)
+            .unwrap();
+        // Times 7..10 take the slots of times 2, 3 and 0 (7, 8 and 10 mod 5); time 1 keeps its.
+        e.insert(7, &[9.0; 4], QueryMeta::CORRUPTED).unwrap();
+        let step = e.action(0).unwrap();
+        assert_eq!(step.action, &[1.0]);
+        assert_eq!((step.report.m, step.report.q), (1, 0));
+        assert_eq!(e.deferred, None, "time 0 was gathered, not read from sums");
+        let step = e.action(1).unwrap();
+        assert_eq!((step.action, step.report.m), (&[2.0][..], 1));
+        assert!(e.deferred.is_some(), "time 1 kept its sums");
+        assert_eq!(e.last_candidates().0.values(), &[2.0, 0.0, 0.0, 0.0]);
+        let step = e.action(3).unwrap();
+        assert_eq!((step.action, step.report.m), (&[4.0][..], 1));
+        assert_eq!(e.deferred, None, "time 3 was gathered");
+        let step = e.action(7).unwrap();
+        assert_eq!((step.action, step.report.q), (&[9.0][..], 1));
+        assert!(e.deferred.is_some(), "time 7 is summed");
     }
 
     /// The large rings' gather (two contiguous runs, no per-row test while every chunk is

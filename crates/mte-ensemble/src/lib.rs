@@ -85,9 +85,11 @@ mod error;
 pub mod geometry;
 pub mod monitor;
 mod network;
+mod running;
 
 pub use aggregate::{
-    Aggregate, Aggregator, Candidates, DEFAULT_EWM_M, MedianTie, WeightOrder, Workspace,
+    Aggregate, Aggregator, Candidates, DEFAULT_EWM_M, MedianTie, RunningWeights, WeightOrder,
+    Workspace,
 };
 pub use bracket::{BracketAccumulator, BracketReport, BracketRow};
 pub use ensembler::{

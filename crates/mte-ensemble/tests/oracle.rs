@@ -357,3 +357,111 @@ fn regular_strides_one_to_four_match_the_oracle() {
         }
     }
 }
+
+/// An aggregator that computes `A`'s values but offers no running weights, so that the
+/// ensembler gathers its candidates at every step: the reference for the running sums.
+struct Gathering(Aggregator);
+
+impl mte_ensemble::Aggregate for Gathering {
+    fn aggregate(
+        &self,
+        c: &mte_ensemble::Candidates<'_>,
+        ws: &mut mte_ensemble::Workspace,
+        out: &mut [f32],
+    ) -> Result<(), mte_ensemble::AggregateError> {
+        self.0.aggregate(c, ws, out)
+    }
+}
+
+/// The running sums of `ewm` and `mean` give the gathered path's results bit for bit (actions,
+/// reports, errors and the candidates read afterwards), on random streams with varying
+/// strides, skipped queries, non-finite rows, chunks inserted ahead, repeated steps and a
+/// reset mid-episode, at small and ACT-sized chunks.
+#[test]
+fn running_sums_give_the_gathered_bits() {
+    use mte_ensemble::{Aggregate, EnsemblerOptions};
+    let mut rng = ChaCha8Rng::seed_from_u64(20261127);
+    let aggs = [
+        Aggregator::default(),
+        Aggregator::Mean,
+        Aggregator::ExpWeightedMean {
+            m: 0.3,
+            order: WeightOrder::OldestFirst,
+        },
+        Aggregator::ExpWeightedMean {
+            m: -0.2,
+            order: WeightOrder::NewestFirst,
+        },
+    ];
+    for agg in aggs {
+        assert!(agg.running_weights().is_some(), "{agg}");
+    }
+    let mut steps = 0;
+    for case in 0..80 {
+        let t_p = if case % 4 == 0 {
+            rng.random_range(60..=100)
+        } else {
+            rng.random_range(4..=32)
+        };
+        let t_o = rng.random_range(1..=2.min(t_p));
+        let h = rng.random_range(1..=4usize.min(t_p - t_o + 1));
+        let g = ChunkGeometry::new(t_p, t_o, h).unwrap();
+        let d = [1, 2, 3, 7, 14][case % 5];
+        let len = 2 * t_p as u64 + 10;
+        let queries = random_episode(&mut rng, g, d, len);
+        let agg = aggs[case % aggs.len()];
+        let opts = EnsemblerOptions {
+            lookahead: Some(h + 2),
+            bracket_diagnostics: false,
+        };
+        let mut run = TemporalEnsembler::with_options(g, d, agg, opts).unwrap();
+        let mut gat = TemporalEnsembler::with_options(g, d, Gathering(agg), opts).unwrap();
+        let reset_at = (case % 3 == 0).then_some(len / 2);
+        let mut next = 0;
+        for tau in 0..len {
+            if Some(tau) == reset_at {
+                run.reset();
+                gat.reset();
+                // Start the rest of the episode afresh: skip queries already due.
+                while next < queries.len() && queries[next].t < tau {
+                    next += 1;
+                }
+            }
+            // Insert up to two steps ahead (within the lookahead) some of the time.
+            let ahead = if rng.random_bool(0.3) { 2 } else { 0 };
+            while next < queries.len() && queries[next].t <= tau + ahead {
+                let q = &queries[next];
+                let meta = QueryMeta {
+                    corrupted: q.corrupted,
+                };
+                let (a, b) = (
+                    run.insert(q.t, &q.chunk, meta),
+                    gat.insert(q.t, &q.chunk, meta),
+                );
+                assert_eq!(format!("{a:?}"), format!("{b:?}"), "insert at {tau}");
+                next += 1;
+            }
+            for _ in 0..1 + usize::from(rng.random_bool(0.1)) {
+                let a = run.action(tau).map(|s| (s.action.to_vec(), s.report));
+                let b = gat.action(tau).map(|s| (s.action.to_vec(), s.report));
+                match (&a, &b) {
+                    (Ok((xa, ra)), Ok((xb, rb))) => {
+                        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                        assert_eq!(bits(xa), bits(xb), "{agg} {g:?} d {d} tau {tau}");
+                        assert_eq!(ra, rb, "{agg} tau {tau}");
+                        steps += 1;
+                    }
+                    _ => assert_eq!(format!("{a:?}"), format!("{b:?}"), "tau {tau}"),
+                }
+                if rng.random_bool(0.5) {
+                    let (ca, fa) = run.last_candidates();
+                    let (ca, fa) = (ca.values().to_vec(), fa.to_vec());
+                    let (cb, fb) = gat.last_candidates();
+                    assert_eq!(ca, cb.values(), "candidates at {tau}");
+                    assert_eq!(fa, fb, "flags at {tau}");
+                }
+            }
+        }
+    }
+    assert!(steps > 5000, "only {steps} steps compared");
+}

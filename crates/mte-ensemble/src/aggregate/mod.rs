@@ -70,10 +70,11 @@ impl<'a> Candidates<'a> {
         })
     }
 
-    /// Wraps values the caller has already checked (finite, non-empty, whole rows of
-    /// `stride >= dim` values).
+    /// Wraps values the caller has already checked (finite, whole rows of `stride >= dim`
+    /// values; non-empty, except the empty set of
+    /// [`TemporalEnsembler::last_candidates`](crate::TemporalEnsembler::last_candidates)).
     pub(crate) fn from_checked(values: &'a [f32], dim: usize, stride: usize) -> Self {
-        debug_assert!(dim > 0 && stride >= dim && !values.is_empty());
+        debug_assert!(dim > 0 && stride >= dim);
         debug_assert!(values.len().is_multiple_of(stride));
         debug_assert!(values.iter().all(|v| v.is_finite()));
         Self {
@@ -88,7 +89,9 @@ impl<'a> Candidates<'a> {
         self.values.len() / self.stride
     }
 
-    /// Always false: a candidate set holds at least one candidate.
+    /// False for every set an aggregator is given (at least one candidate); true only for
+    /// [`TemporalEnsembler::last_candidates`](crate::TemporalEnsembler::last_candidates)
+    /// before a successful step.
     pub fn is_empty(&self) -> bool {
         self.values.is_empty()
     }
@@ -180,6 +183,18 @@ impl Workspace {
         self.capacity
     }
 
+    /// Fills `into` with the weights `w_0, w_1, ...` of `r`, the very values (bits) the
+    /// built-in means apply to the candidates at those positions.
+    pub(crate) fn running_weights_into(&mut self, r: RunningWeights, into: &mut [f64]) {
+        match r {
+            RunningWeights::Uniform => into.fill(1.0),
+            RunningWeights::Decay { m } => {
+                self.ensure_decay(m);
+                into.copy_from_slice(&self.decay[..into.len()]);
+            }
+        }
+    }
+
     /// Makes `decay[k] = exp(-|m| k)`, recomputing only when `|m|` changed since last time.
     fn ensure_decay(&mut self, m: f64) {
         let m = m.abs();
@@ -255,6 +270,30 @@ pub trait Aggregate {
         ws: &mut Workspace,
         out: &mut [f32],
     ) -> Result<(), AggregateError>;
+
+    /// `Some` when this aggregate is a weighted mean whose weight depends only on a
+    /// candidate's position among the finite candidates, oldest first, and which
+    /// [`aggregate`](Self::aggregate) computes as `Σ_i w_i x_i / Σ_i w_i` in f64, summed in
+    /// candidate order from zero (as every built-in mean does). A
+    /// [`TemporalEnsembler`](crate::TemporalEnsembler) then keeps these sums per control time
+    /// as chunks arrive, and a step reads them instead of gathering its candidates: the same
+    /// bits, at ACT's `M = 100` without the gather. The default, `None`, always gathers.
+    fn running_weights(&self) -> Option<RunningWeights> {
+        None
+    }
+}
+
+/// The weights of a mean that can be summed as candidates arrive (see
+/// [`Aggregate::running_weights`]): `w_i` for the `i`-th finite candidate, oldest first.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RunningWeights {
+    /// `w_i = 1`: the uniform mean.
+    Uniform,
+    /// `w_i = exp(-|m| i)`: older candidates weigh more (ACT's and LeRobot's `ewm`).
+    Decay {
+        /// The decay coefficient `m` (its magnitude is used).
+        m: f64,
+    },
 }
 
 /// Which candidate gets exponential weight index `k = 0`.
@@ -445,6 +484,22 @@ impl Aggregate for Aggregator {
             Self::GeometricMedian { max_iter } => geometric::geometric_median(c, max_iter, ws, out),
         }
         Ok(())
+    }
+
+    /// The uniform mean, and the exp-weighted mean whose heavier weights go to older
+    /// candidates (`ewm:m` with `m >= 0`, the default, and `ewm-newest:m` with `m < 0`):
+    /// `weighted::exp_weighted_mean` weighs those with `decay`, in candidate order. The
+    /// newer-heavy mean's weights of a candidate change as newer ones arrive, so it gathers.
+    fn running_weights(&self) -> Option<RunningWeights> {
+        match *self {
+            Self::Mean => Some(RunningWeights::Uniform),
+            Self::ExpWeightedMean { m, order }
+                if (order == WeightOrder::OldestFirst) == (m >= 0.0) =>
+            {
+                Some(RunningWeights::Decay { m })
+            }
+            _ => None,
+        }
     }
 }
 

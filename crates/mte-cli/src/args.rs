@@ -273,9 +273,10 @@ pub struct TrainEncoderArgs {
 /// Model presets.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum PresetArg {
-    /// The published PushT configuration (down_dims 512/1024/2048, 100 DDPM steps): for GPUs.
+    /// The model's published configuration (the command's `--preset` text says which): for
+    /// GPUs.
     Paper,
-    /// Small U-Net (32/64/128), 16 DDIM steps: trains on 2 CPU cores.
+    /// The same model made small enough to train on 2 CPU cores.
     Cpu,
 }
 
@@ -303,7 +304,9 @@ pub struct TrainDiffusionArgs {
     /// Dataset directory (from `mte data generate`).
     #[arg(long, value_name = "DIR")]
     pub data: PathBuf,
-    /// Model preset.
+    /// Model preset: `paper` is Diffusion Policy's published PushT configuration of the
+    /// backbone (the U-Net's down_dims 512/1024/2048, 100 DDPM steps), `cpu` a small one
+    /// that trains on 2 CPU cores (the U-Net's 32/64/128, 16 DDIM steps).
     #[arg(long, value_enum, default_value_t = PresetArg::Cpu)]
     pub preset: PresetArg,
     /// Observation to condition on.

@@ -2,10 +2,7 @@
 
 use std::fmt;
 
-use mte_ensemble::{
-    Aggregate, AggregateError, Aggregator, Candidates, ChunkGeometry, QueryMeta, TemporalEnsembler,
-    Workspace,
-};
+use mte_ensemble::{Aggregate, Aggregator, ChunkGeometry, QueryMeta, TemporalEnsembler};
 
 /// One benchmark configuration: aggregator, chunk length `t_p`, action dim `d`, stride `h`.
 /// `t_o` is 2 for `t_p = 16` (Diffusion Policy) and 1 for `t_p = 100` (ACT).
@@ -36,23 +33,6 @@ impl fmt::Display for Config {
             self.h,
             g.m_max()
         )
-    }
-}
-
-/// `Aggregator`'s values without its running weights: the ensembler gathers the candidates
-/// at every step, as it did for every aggregator before running sums (the reference beside
-/// them in one run).
-#[allow(dead_code)] // used by the `step` bench only
-pub struct Gathering(pub Aggregator);
-
-impl Aggregate for Gathering {
-    fn aggregate(
-        &self,
-        c: &Candidates<'_>,
-        ws: &mut Workspace,
-        out: &mut [f32],
-    ) -> Result<(), AggregateError> {
-        self.0.aggregate(c, ws, out)
     }
 }
 

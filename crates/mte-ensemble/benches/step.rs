@@ -11,8 +11,8 @@
 
 mod common;
 
-use common::{CHUNKS, Config, DIMS, Gathering, Loop, STRIDES};
-use mte_ensemble::Aggregator;
+use common::{CHUNKS, Config, DIMS, Loop, STRIDES};
+use mte_ensemble::{Aggregator, Gathered};
 
 fn main() {
     divan::main();
@@ -93,7 +93,7 @@ fn running_sums(bencher: divan::Bencher, cfg: &Config) {
 /// other aggregator takes).
 #[divan::bench(args = means())]
 fn running_sums_gathered(bencher: divan::Bencher, cfg: &Config) {
-    let mut l = Loop::with(*cfg, Gathering(cfg.agg));
+    let mut l = Loop::with(*cfg, Gathered(cfg.agg));
     bencher.bench_local(|| l.step());
 }
 

@@ -88,8 +88,8 @@ mod network;
 mod running;
 
 pub use aggregate::{
-    Aggregate, Aggregator, Candidates, DEFAULT_EWM_M, MedianTie, RunningWeights, WeightOrder,
-    Workspace,
+    Aggregate, Aggregator, Candidates, DEFAULT_EWM_M, Gathered, MedianTie, RunningWeights,
+    WeightOrder, Workspace,
 };
 pub use bracket::{BracketAccumulator, BracketReport, BracketRow};
 pub use ensembler::{

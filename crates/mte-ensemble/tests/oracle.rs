@@ -358,28 +358,13 @@ fn regular_strides_one_to_four_match_the_oracle() {
     }
 }
 
-/// An aggregator that computes `A`'s values but offers no running weights, so that the
-/// ensembler gathers its candidates at every step: the reference for the running sums.
-struct Gathering(Aggregator);
-
-impl mte_ensemble::Aggregate for Gathering {
-    fn aggregate(
-        &self,
-        c: &mte_ensemble::Candidates<'_>,
-        ws: &mut mte_ensemble::Workspace,
-        out: &mut [f32],
-    ) -> Result<(), mte_ensemble::AggregateError> {
-        self.0.aggregate(c, ws, out)
-    }
-}
-
 /// The running sums of `ewm` and `mean` give the gathered path's results bit for bit (actions,
 /// reports, errors and the candidates read afterwards), on random streams with varying
 /// strides, skipped queries, non-finite rows, chunks inserted ahead, repeated steps and a
 /// reset mid-episode, at small and ACT-sized chunks.
 #[test]
 fn running_sums_give_the_gathered_bits() {
-    use mte_ensemble::{Aggregate, EnsemblerOptions};
+    use mte_ensemble::{Aggregate, EnsemblerOptions, Gathered};
     let mut rng = ChaCha8Rng::seed_from_u64(20261127);
     let aggs = [
         Aggregator::default(),
@@ -415,7 +400,7 @@ fn running_sums_give_the_gathered_bits() {
             bracket_diagnostics: false,
         };
         let mut run = TemporalEnsembler::with_options(g, d, agg, opts).unwrap();
-        let mut gat = TemporalEnsembler::with_options(g, d, Gathering(agg), opts).unwrap();
+        let mut gat = TemporalEnsembler::with_options(g, d, Gathered(agg), opts).unwrap();
         let reset_at = (case % 3 == 0).then_some(len / 2);
         let mut next = 0;
         for tau in 0..len {

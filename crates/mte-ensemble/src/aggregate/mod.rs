@@ -283,6 +283,23 @@ pub trait Aggregate {
     }
 }
 
+/// `A`'s aggregate without its running weights, so that a
+/// [`TemporalEnsembler`](crate::TemporalEnsembler) gathers the candidates at every step: the
+/// reference path beside the running sums, for tests and benchmarks.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Gathered<A>(pub A);
+
+impl<A: Aggregate> Aggregate for Gathered<A> {
+    fn aggregate(
+        &self,
+        c: &Candidates<'_>,
+        ws: &mut Workspace,
+        out: &mut [f32],
+    ) -> Result<(), AggregateError> {
+        self.0.aggregate(c, ws, out)
+    }
+}
+
 /// The weights of a mean that can be summed as candidates arrive (see
 /// [`Aggregate::running_weights`]): `w_i` for the `i`-th finite candidate, oldest first.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -75,7 +75,10 @@
 //! one aggregator (a mean can be updated online, a median cannot) and to a fixed stride of
 //! one. Keeping the raw chunks in a ring of at most `t_p - t_o + 2` slots costs
 //! `O(t_p^2 d)` floats, supports every aggregator and any stride (varying, late, missing
-//! queries), and gathering the `M` candidates per step is a handful of copies.
+//! queries), and gathering the `M` candidates per step is a handful of copies. The means
+//! (`ewm`, `mean`) also keep LeRobot's kind of running sums, per control time beside the
+//! ring, summed in candidate order so that they give the gathered mean's bits: at ACT's
+//! `M = 100` they spare the step its 100-row gather ([`Aggregate::running_weights`]).
 #![deny(missing_docs)]
 
 pub mod aggregate;

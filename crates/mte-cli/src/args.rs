@@ -236,6 +236,10 @@ pub struct TrainActArgs {
     /// Checkpoint every this many steps.
     #[arg(long, default_value_t = 2000)]
     pub checkpoint_every: usize,
+    /// Start from the weights of an ACT checkpoint of the same configuration (its
+    /// model.safetensors, e.g. a bundled policy's), to train it further; ignored on resume.
+    #[arg(long, value_name = "FILE")]
+    pub init: Option<PathBuf>,
     /// Output directory; if it holds a training state, training resumes from it.
     #[arg(long, short, value_name = "DIR")]
     pub out: PathBuf,

@@ -143,6 +143,7 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
         batch_size: a.batch_size,
         seed: a.seed,
         checkpoint_every: a.checkpoint_every,
+        init: a.init.clone(),
     };
     let bar = Bar::for_cli(cli, "train act", a.steps);
     let report = train_act(&data, config, &tc, &a.out, &mut |step, l1, kld| {

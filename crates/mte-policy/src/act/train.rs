@@ -7,7 +7,7 @@
 //! (AdamW's moments restart, as for Diffusion Policy).
 
 use std::cell::RefCell;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
@@ -33,6 +33,12 @@ pub struct ActTrainConfig {
     pub seed: u64,
     /// Checkpoint period (steps).
     pub checkpoint_every: usize,
+    /// An ACT checkpoint's `model.safetensors` (same configuration) whose weights replace
+    /// the seeded initialisation: training goes on from a bundled policy whose run directory
+    /// is gone. Every variable must be in it (`model.<name>`, same shape). AdamW's moments
+    /// start afresh, as on resuming. Ignored when resuming.
+    #[serde(default)]
+    pub init: Option<PathBuf>,
 }
 
 impl ActTrainConfig {
@@ -149,6 +155,9 @@ pub fn train(
     let vb = crate::init::seeded_var_builder(&varmap, train.seed, DType::F32, &Device::Cpu);
     let policy = ActPolicy::new(config.clone(), data.stats.clone(), vb)?;
     let mut step = resume(&varmap, out)?;
+    if let Some(init) = train.init.as_ref().filter(|_| step == 0) {
+        load_weights(&varmap, init)?;
+    }
     let vars: Vec<Var> = varmap.all_vars();
     let mut opt = AdamW::new(
         vars.clone(),
@@ -249,8 +258,15 @@ fn resume(varmap: &VarMap, out: &Path) -> Result<usize, PolicyError> {
     };
     let state: TrainingState =
         serde_json::from_str(&text).map_err(|source| PolicyError::Json { path, source })?;
-    let wpath = out.join(crate::checkpoint::WEIGHTS);
-    let weights = candle_core::safetensors::load(&wpath, &Device::Cpu)?;
+    load_weights(varmap, &out.join(crate::checkpoint::WEIGHTS))?;
+    Ok(state.step)
+}
+
+/// Sets every variable of `varmap` from `model.<name>` in the checkpoint weights at `path`;
+/// a missing key or a different shape is an error naming it. Other keys (buffers such as
+/// `model.vae_encoder_pos_enc`) are ignored. Returns how many variables were set.
+pub fn load_weights(varmap: &VarMap, path: &Path) -> Result<usize, PolicyError> {
+    let weights = candle_core::safetensors::load(path, &Device::Cpu)?;
     let vars = varmap
         .data()
         .lock()
@@ -258,10 +274,18 @@ fn resume(varmap: &VarMap, out: &Path) -> Result<usize, PolicyError> {
     for (name, var) in vars.iter() {
         let t = weights
             .get(&format!("model.{name}"))
-            .ok_or_else(|| crate::checkpoint::ck(&wpath, format!("missing model.{name}")))?;
+            .ok_or_else(|| crate::checkpoint::ck(path, format!("missing model.{name}")))?;
+        if t.shape() != var.shape() {
+            let why = format!(
+                "model.{name} has shape {:?}, the policy expects {:?}",
+                t.dims(),
+                var.dims()
+            );
+            return Err(crate::checkpoint::ck(path, why));
+        }
         var.set(t)?;
     }
-    Ok(state.step)
+    Ok(vars.len())
 }
 
 #[cfg(test)]
@@ -315,6 +339,46 @@ mod tests {
         let vb = crate::init::seeded_var_builder(&varmap, 1, DType::F32, &Device::Cpu);
         let policy = ActPolicy::new(c, data.stats.clone(), vb).expect("policy");
         (policy, varmap, data)
+    }
+
+    /// A warm start sets every variable to the checkpoint's value; a checkpoint of another
+    /// width is a typed error naming the first variable whose shape differs.
+    #[test]
+    fn a_warm_start_loads_every_variable_and_refuses_other_shapes() {
+        let (policy, varmap, _) = tiny();
+        let dir = tempfile::tempdir().expect("tmp");
+        policy.save(dir.path(), &varmap).expect("save");
+        let path = dir.path().join(crate::checkpoint::WEIGHTS);
+        let other = VarMap::new();
+        let vb = crate::init::seeded_var_builder(&other, 2, DType::F32, &Device::Cpu);
+        let c = policy.config().clone();
+        let _p = ActPolicy::new(c.clone(), policy.stats().clone(), vb).expect("policy");
+        let values = |m: &VarMap| -> Vec<(String, Vec<f32>)> {
+            let vars = m.data().lock().expect("lock");
+            let mut v: Vec<_> = vars
+                .iter()
+                .map(|(k, t)| {
+                    let x = t.as_tensor().flatten_all().and_then(|t| t.to_vec1());
+                    (k.clone(), x.expect("values"))
+                })
+                .collect();
+            v.sort_by(|a, b| a.0.cmp(&b.0));
+            v
+        };
+        assert_ne!(
+            values(&other),
+            values(&varmap),
+            "different seeds, different weights"
+        );
+        let n = load_weights(&other, &path).expect("load");
+        assert_eq!(n, values(&varmap).len());
+        assert_eq!(values(&other), values(&varmap));
+        let wide = VarMap::new();
+        let vb = crate::init::seeded_var_builder(&wide, 2, DType::F32, &Device::Cpu);
+        let c = ActConfig { dim_model: 24, ..c };
+        let _p = ActPolicy::new(c, policy.stats().clone(), vb).expect("policy");
+        let e = load_weights(&wide, &path).expect_err("other width");
+        assert!(e.to_string().contains("the policy expects"), "{e}");
     }
 
     /// Every parameter gets the gradient that finite differences of the training loss give

@@ -594,22 +594,30 @@ impl<A: Aggregate> TemporalEnsembler<A> {
         Ok((report, bracket))
     }
 
+    /// How many live chunks, from the head, were queried at or before `tau`. Chunks inserted
+    /// ahead (query time after `tau`) are at the tail: few, at most the lookahead.
+    #[inline]
+    fn queried_by(&self, tau: u64) -> usize {
+        let mut m = self.len;
+        while m > 0 && self.slots[self.wrap(self.head + m - 1)].t_query > tau {
+            m -= 1;
+        }
+        m
+    }
+
     /// The step at `tau` from the running sums: `None` when there are none for `tau` (no
     /// running mean, or a time whose slot was taken), and the caller gathers.
     fn running_step(&mut self, tau: u64) -> Result<Option<StepReport>, EnsembleError> {
         let Some((s, total, sums)) = self.running.as_ref().and_then(|r| r.get(tau)) else {
             return Ok(None);
         };
-        // The covering chunks are the live ones from the head (`evict_before(tau)` left none
-        // older) to the newest queried at or before `tau` (those queried ahead are at the
-        // tail: at most the lookahead).
-        let mut m = self.len;
-        while m > 0 && self.slots[self.wrap(self.head + m - 1)].t_query > tau {
-            m -= 1;
-        }
+        // The covering chunks: the live ones from the head (`evict_before(tau)` left none
+        // older) to the newest queried at or before `tau`.
+        let m = self.queried_by(tau);
         let (used, excluded) = (s.used as usize, s.excluded as usize);
         debug_assert_eq!(m, used + excluded, "running sums out of step at {tau}");
-        if m == 0 || m != used + excluded {
+        // A held slot has at least one candidate, so this also excludes `m == 0`.
+        if m != used + excluded {
             return Ok(None); // unreachable (see `running`): gather rather than guess
         }
         if used == 0 {
@@ -728,12 +736,7 @@ impl<A: Aggregate> TemporalEnsembler<A> {
     #[inline]
     fn gather_finite<const D: usize>(&mut self, tau: u64) -> Option<Gathered> {
         debug_assert!(D == self.dim);
-        // Chunks inserted ahead (query time after `tau`) are at the tail: few, at most the
-        // lookahead.
-        let mut m = self.len;
-        while m > 0 && self.slots[self.wrap(self.head + m - 1)].t_query > tau {
-            m -= 1;
-        }
+        let m = self.queried_by(tau);
         if m == 0 {
             return Some(Gathered::default());
         }

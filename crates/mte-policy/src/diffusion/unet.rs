@@ -26,6 +26,9 @@ pub struct Conv1dGemm {
     bias: Tensor,
     stride: usize,
     pad: usize,
+    /// The weight packed for the constant-weight path, made on its first use (a constant
+    /// weight never changes: a trained one is a variable, which takes the composed path).
+    packed: std::sync::OnceLock<Tensor>,
 }
 
 impl Conv1dGemm {
@@ -43,12 +46,23 @@ impl Conv1dGemm {
             lo: -bound,
             up: bound,
         };
-        Ok(Conv1dGemm {
-            weight: vb.get_with_hints((cout, cin, k), "weight", init)?,
-            bias: vb.get_with_hints(cout, "bias", init)?,
+        Ok(Conv1dGemm::from_parts(
+            vb.get_with_hints((cout, cin, k), "weight", init)?,
+            vb.get_with_hints(cout, "bias", init)?,
             stride,
             pad,
-        })
+        ))
+    }
+
+    /// The layer of `weight (C_out, C_in, k)` and `bias (C_out)`.
+    fn from_parts(weight: Tensor, bias: Tensor, stride: usize, pad: usize) -> Self {
+        Conv1dGemm {
+            weight,
+            bias,
+            stride,
+            pad,
+            packed: std::sync::OnceLock::new(),
+        }
     }
 
     /// `(B, C_in, T)` -> `(B, C_out, T_out)`.
@@ -57,9 +71,16 @@ impl Conv1dGemm {
             && crate::kernels::constant_weights(x, &self.weight, &self.bias)
         {
             // The same bits in one graph node (`kernels::conv1d`).
+            let packed = match self.packed.get() {
+                Some(w) => w.clone(),
+                None => {
+                    let w = crate::kernels::packed_weight(&self.weight)?;
+                    self.packed.get_or_init(|| w).clone()
+                }
+            };
             return crate::kernels::conv1d_constant(
                 x,
-                &self.weight,
+                (&self.weight, &packed),
                 &self.bias,
                 self.stride,
                 self.pad,
@@ -281,12 +302,7 @@ impl Upsample {
             .contiguous()?
             .index_select(&idx, 2)?;
         // Padding k - 1 - p = 2 on both sides gives length 2T.
-        let conv = Conv1dGemm {
-            weight: w,
-            bias: self.bias.clone(),
-            stride: 1,
-            pad: self.k - 2,
-        };
+        let conv = Conv1dGemm::from_parts(w, self.bias.clone(), 1, self.k - 2);
         conv.forward(&z, products)
     }
 }
@@ -511,18 +527,13 @@ mod tests {
                 rand(&[co, c, k], 20 + i as u64)?,
                 rand(&[co], 30 + i as u64)?,
             );
-            let constant = Conv1dGemm {
-                weight: w.clone(),
-                bias: b.clone(),
+            let constant = Conv1dGemm::from_parts(w.clone(), b.clone(), stride, pad);
+            let tracked = Conv1dGemm::from_parts(
+                Var::from_tensor(&w)?.as_tensor().clone(),
+                Var::from_tensor(&b)?.as_tensor().clone(),
                 stride,
                 pad,
-            };
-            let tracked = Conv1dGemm {
-                weight: Var::from_tensor(&w)?.as_tensor().clone(),
-                bias: Var::from_tensor(&b)?.as_tensor().clone(),
-                stride,
-                pad,
-            };
+            );
             let yc = constant.forward(x.as_tensor(), Products::PerSample)?;
             let yt = tracked.forward(x.as_tensor(), Products::PerSample)?;
             use crate::kernels::test_util::{bits, probe_gradient};

@@ -6,11 +6,13 @@
 //! the others. A result must not. One fused product `(C_out, C k) x (C k, B T)` is not
 //! batch-invariant: the gemm kernel picks its blocking and even its algorithm (horizontal
 //! kernels for small outputs, gemv for one column, the depth blocking `kc`) from the product's
-//! shape, so an element's summation order can change with `B`. Here every sample is one
-//! product of the shape a batch of one has, so a batch of `B` reproduces `B` single queries
-//! bit for bit, and a batch of one is exactly the product the policy computed before these
-//! functions existed. Elementwise ops, row reductions (GroupNorm, softmax) and the DDPM
-//! step are per-sample already.
+//! shape, so an element's summation order can change with `B`. Here the products are
+//! `super::product`'s, whose every output element is defined as one chain of fused
+//! multiply-adds in the order of depth: a batch of `B` reproduces `B` single queries bit for
+//! bit however the kernel tiles them. (Until 2026-11-28 each sample was its own gemm call of
+//! a batch of one's shape: batch-invariant too, but gemm's edge kernels for a sample's 16
+//! columns made the batch-64 U-Net 2.5-2.9x slower than PyTorch.) Elementwise ops, row
+//! reductions (GroupNorm, softmax) and the DDPM step are per-sample already.
 //!
 //! The products are candle ops, so gradients flow through them as through any other.
 //!
@@ -20,6 +22,7 @@
 //! evaluation-crop image features) ask for [`Products::PerSample`], training paths for
 //! [`Products::Fused`].
 
+use super::product::{Dims, Element, Shared};
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp2, Layout, Result, Shape, Tensor, WithDType};
 
@@ -71,10 +74,9 @@ pub(super) enum Side {
     Right,
 }
 
-/// Each sample of `x (B, p, q)` times the shared `w` on `side`, as one custom op on the CPU:
-/// per sample, candle's own product of exactly a batch of one's operands (same shapes, same
-/// strides: a transposed weight stays a transposed view), so the result is bit for bit the
-/// batch of one's; its backward pass is the same op with `wᵀ`, linear in the batch (a
+/// Each sample of `x (B, p, q)` times the shared `w` on `side`, as one custom op on the CPU
+/// (`super::product`'s kernel, so the result is bit for bit the batch of one's); its
+/// backward pass is the same op with `wᵀ`, linear in the batch (a
 /// per-sample `narrow` would cost `O(B²)` in the backward pass). Gradients flow to `x` only:
 /// per-sample products serve evaluation and attacks, where the weights are constants.
 /// Elsewhere than the CPU, one candle product per sample.
@@ -112,12 +114,12 @@ pub(super) struct PerSampleProduct {
 }
 
 impl PerSampleProduct {
-    /// Each sample's product, read in place from the two storages: the weight is never
-    /// copied (at the `paper` preset a copy per product moved ~1 GB per U-Net forward and
-    /// cost 3x its arithmetic), and each product gets candle's CPU matmul with exactly the
-    /// layouts a batch of one's `Tensor::matmul` passes it (a contiguous weight, or its
-    /// transposed view), so the bits are those of a batch of one.
-    pub(super) fn products<T: WithDType>(
+    /// Each sample's product, read in place from the two storages through
+    /// [`super::product`]'s kernel, whose every element's arithmetic is fixed (so a sample's
+    /// result is the same bits whatever shares its batch). The weight is packed once per
+    /// call, never per sample (at the `paper` preset a copy per product moved ~1 GB per
+    /// U-Net forward).
+    pub(super) fn products<T: WithDType + Element>(
         &self,
         x: &CpuStorage,
         lx: &Layout,
@@ -140,31 +142,36 @@ impl PerSampleProduct {
                 lw.dims()
             );
         };
-        // The stored weight, or its transposed view: `(wr, wc)` is the matrix multiplied.
-        let wl = Layout::contiguous_with_offset((s0, s1), w0);
-        let (wl, wr, wc) = if self.transpose {
-            (wl.transpose(0, 1)?, s1, s0)
-        } else {
-            (wl, s0, s1)
+        let xs = T::cpu_storage_as_slice(x)?.get(x0..x0 + b * p * q);
+        let ws = T::cpu_storage_as_slice(w)?.get(w0..w0 + s0 * s1);
+        let (Some(xs), Some(ws)) = (xs, ws) else {
+            candle_core::bail!("per-sample product: a layout runs past its storage");
         };
-        let (m, n) = match self.side {
-            Side::Left => (wr, q),
-            Side::Right => (p, wc),
+        // The matrix multiplied is `(wr, wc)`: the stored one or its transpose.
+        let (wr, wc) = if self.transpose { (s1, s0) } else { (s0, s1) };
+        let (m, k, n, inner) = match self.side {
+            Side::Left => (wr, wc, q, p),
+            Side::Right => (p, q, wc, wr),
         };
-        let mut out: Vec<T> = Vec::with_capacity(b * m * n);
-        for i in 0..b {
-            let xl = Layout::contiguous_with_offset((p, q), x0 + i * p * q);
-            let y = match self.side {
-                Side::Left => w.matmul(x, (1, m, n, wc), &wl, &xl)?,
-                Side::Right => x.matmul(w, (1, m, n, q), &xl, &wl)?,
-            };
-            out.extend_from_slice(y.as_slice::<T>()?);
+        if inner != k {
+            candle_core::bail!(
+                "per-sample product: inner dimensions differ, x {:?} and w ({wr}, {wc}) on the {:?}",
+                lx.dims(),
+                self.side
+            );
         }
+        let dims = Dims { m, k, n };
+        let weight = Shared::Plain {
+            data: ws,
+            transposed: self.transpose,
+        };
+        let mut out = vec![T::ZERO; b * m * n];
+        super::product::products(self.side, weight, xs, dims, b, &mut out);
         Ok((out, Shape::from((b, m, n))))
     }
 
     /// [`PerSampleProduct::products`] as a storage.
-    pub(super) fn forward<T: WithDType>(
+    pub(super) fn forward<T: WithDType + Element>(
         &self,
         x: &CpuStorage,
         lx: &Layout,
@@ -347,11 +354,27 @@ mod tests {
         }
     }
 
+    /// `w (m, k) · x (k, n)` as `kernels::product` defines it: one fused multiply-add per
+    /// term, in the order of `k`, from zero.
+    fn fma_product(w: &[Vec<f32>], x: &[Vec<f32>]) -> Vec<f32> {
+        let mut out = Vec::new();
+        for row in w {
+            let mut acc = vec![0f32; x[0].len()];
+            for (&a, x_row) in row.iter().zip(x) {
+                for (v, &b) in acc.iter_mut().zip(x_row) {
+                    *v = a.mul_add(b, *v);
+                }
+            }
+            out.extend(acc);
+        }
+        out
+    }
+
     #[test]
-    fn views_with_offsets_are_read_in_place_as_candle_multiplies_them() {
+    fn views_with_offsets_are_read_in_place() {
         // The products read both storages in place through their layouts: a weight and a
         // batch that start inside larger buffers (narrowed views, still contiguous), and a
-        // transposed weight, give exactly candle's own product of each sample, bit for bit.
+        // transposed weight, give each sample's product as defined, bit for bit.
         let big_w = rand(&[40, 24], 11).to_dtype(DType::F32).expect("w");
         let big_x = rand(&[9, 24, 5], 12).to_dtype(DType::F32).expect("x");
         let w = big_w.narrow(0, 7, 16).expect("w view");
@@ -361,15 +384,13 @@ mod tests {
         let left = rows(&left_shared(&w, &x, Products::PerSample).expect("left"));
         let xt = x.transpose(1, 2).expect("t").contiguous().expect("c");
         let right = rows(&right_shared(&xt, &w.t().expect("t"), Products::PerSample).expect("r"));
+        let vec2 = |t: &Tensor| t.to_vec2::<f32>().expect("matrix");
         for i in 0..4 {
-            let xi = x.get(i).expect("sample");
-            assert_eq!(
-                rows(&w.matmul(&xi).expect("mm").unsqueeze(0).expect("u"))[0],
-                left[i]
-            );
-            let xti = xt.get(i).expect("sample");
-            let want = xti.matmul(&w.t().expect("t")).expect("mm");
-            assert_eq!(rows(&want.unsqueeze(0).expect("u"))[0], right[i]);
+            let xi = vec2(&x.get(i).expect("sample"));
+            assert_eq!(fma_product(&vec2(&w), &xi), left[i]);
+            let xti = vec2(&xt.get(i).expect("sample"));
+            let wt = vec2(&w.t().expect("t").contiguous().expect("c"));
+            assert_eq!(fma_product(&xti, &wt), right[i]);
         }
     }
 
@@ -451,11 +472,6 @@ mod tests {
                 .forward(&x.narrow(0, i, 1).expect("one"), Products::PerSample)
                 .expect("one");
             assert_eq!(&rows(&one)[0], row);
-            // A batch of one is exactly candle_nn's product.
-            let theirs = inner
-                .forward(&x.narrow(0, i, 1).expect("one"))
-                .expect("theirs");
-            assert_eq!(rows(&theirs)[0], *row);
         }
     }
 }

@@ -243,7 +243,7 @@ impl ConstantWeightConv {
 
     fn forward<T>(&self, x: &[T], b: usize, w: &CpuStorage, lw: &Layout) -> Result<CpuStorage>
     where
-        T: candle_core::WithDType + Default,
+        T: candle_core::WithDType + Default + super::product::Element,
     {
         let g = self.0;
         let (ho, wo) = g.out_hw();

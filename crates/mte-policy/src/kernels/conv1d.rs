@@ -16,6 +16,7 @@
 use super::batch::{PerSampleProduct, Side};
 use super::contiguous;
 use super::conv::taps_inside;
+use super::product::{Dims, Shared, left_panels};
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp1, CustomOp3, Layout, Result, Shape, Tensor, WithDType};
 
@@ -85,36 +86,42 @@ fn uncolumns<T: Copy + Default + std::ops::AddAssign>(cols: &[T], b: usize, g: G
     dx
 }
 
-/// The per-sample product `W (C_out, C k) · cols_b`, as `kernels::left_shared` computes it.
-const PRODUCT: PerSampleProduct = PerSampleProduct {
-    side: Side::Left,
-    transpose: false,
-};
-
-/// `x (B, C, T)`, `weight (C_out, C, k)`, `bias (C_out)` → `(B, C_out, T_out)`.
-#[derive(Clone, Copy, Debug)]
-struct ConstantWeightConv1d(Geom1);
+/// `x (B, C, T)`, the weight packed by [`packed_weight`], `bias (C_out)` → `(B, C_out,
+/// T_out)`; the weight itself `(C_out, C, k)` for the backward pass.
+#[derive(Clone, Debug)]
+struct ConstantWeightConv1d {
+    g: Geom1,
+    weight: Tensor,
+    co: usize,
+}
 
 impl ConstantWeightConv1d {
-    fn forward<T: WithDType + Default>(
+    /// Each sample's product `W (C_out, C k) · cols_b` (the packed weight read in place),
+    /// plus the bias.
+    fn forward<T: WithDType + Default + super::product::Element>(
         &self,
         x: &[T],
         b: usize,
-        (sw, lw): (&CpuStorage, &Layout),
+        packed: &[T],
         bias: &[T],
     ) -> Result<CpuStorage> {
-        let g = self.0;
-        let (to, ck, co) = (g.t_out(), g.c * g.k, lw.dims()[0]);
-        let Some((w0, _)) = lw.contiguous_offsets() else {
-            candle_core::bail!("conv1d: the weight must be contiguous");
+        let (g, co) = (self.g, self.co);
+        let to = g.t_out();
+        let cols = columns(x, b, g);
+        let mut y = vec![T::default(); b * co * to];
+        let dims = Dims {
+            m: co,
+            k: g.c * g.k,
+            n: to,
         };
-        let cols = T::to_cpu_storage_owned(columns(x, b, g));
-        let (mut y, _) = PRODUCT.products::<T>(
-            &cols,
-            &Layout::contiguous((b, ck, to)),
-            sw,
-            &Layout::contiguous_with_offset((co, ck), w0),
-        )?;
+        if packed.len() != panels_len(co, dims.k) {
+            candle_core::bail!(
+                "conv1d: a packed weight of {} values, expected {}",
+                packed.len(),
+                panels_len(co, dims.k)
+            );
+        }
+        super::product::products(Side::Left, Shared::Panels(packed), &cols, dims, b, &mut y);
         for sample in y.chunks_mut(co * to) {
             for (row, &bv) in sample.chunks_mut(to).zip(bias) {
                 for v in row {
@@ -141,42 +148,49 @@ impl CustomOp3 for ConstantWeightConv1d {
         lb: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let b = lx.dims()[0];
-        let co = lw.dims()[0];
-        let out = match (sx, sb) {
-            (CpuStorage::F32(x), CpuStorage::F32(bias)) => {
-                self.forward(contiguous(x, lx)?, b, (sw, lw), contiguous(bias, lb)?)?
-            }
-            (CpuStorage::F64(x), CpuStorage::F64(bias)) => {
-                self.forward(contiguous(x, lx)?, b, (sw, lw), contiguous(bias, lb)?)?
-            }
+        let out = match (sx, sw, sb) {
+            (CpuStorage::F32(x), CpuStorage::F32(w), CpuStorage::F32(bias)) => self.forward(
+                contiguous(x, lx)?,
+                b,
+                contiguous(w, lw)?,
+                contiguous(bias, lb)?,
+            )?,
+            (CpuStorage::F64(x), CpuStorage::F64(w), CpuStorage::F64(bias)) => self.forward(
+                contiguous(x, lx)?,
+                b,
+                contiguous(w, lw)?,
+                contiguous(bias, lb)?,
+            )?,
             _ => candle_core::bail!(
-                "conv1d: unsupported dtypes {:?}, {:?}",
+                "conv1d: unsupported dtypes {:?}, {:?}, {:?}",
                 sx.dtype(),
+                sw.dtype(),
                 sb.dtype()
             ),
         };
-        Ok((out, Shape::from((b, co, self.0.t_out()))))
+        Ok((out, Shape::from((b, self.co, self.g.t_out()))))
     }
 
     fn bwd(
         &self,
         _x: &Tensor,
-        w: &Tensor,
+        _packed: &Tensor,
         _bias: &Tensor,
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let g = self.0;
-        let co = w.dim(0)?;
-        // The product's backward: the same side with the weight read transposed.
+        // The product's backward: `Wᵀ g_b`, the same side with the weight read transposed.
         let back = PerSampleProduct {
             side: Side::Left,
             transpose: true,
         };
-        let dcols = grad
-            .contiguous()?
-            .apply_op2_no_bwd(&w.reshape((co, g.c * g.k))?, &back)?;
-        Ok((Some(dcols.apply_op1_no_bwd(&Uncolumns(g))?), None, None))
+        let w = self.weight.reshape((self.co, self.g.c * self.g.k))?;
+        let dcols = grad.contiguous()?.apply_op2_no_bwd(&w, &back)?;
+        Ok((
+            Some(dcols.apply_op1_no_bwd(&Uncolumns(self.g))?),
+            None,
+            None,
+        ))
     }
 }
 
@@ -202,11 +216,34 @@ pub fn constant_weights(x: &Tensor, weight: &Tensor, bias: &Tensor) -> bool {
     x.device().is_cpu() && !weight.track_op() && !bias.track_op()
 }
 
-/// `x (B, C, T)` convolved with a constant `weight (C_out, C, k)` plus `bias (C_out)`, with
-/// per-sample products (batch-invariant): `(B, C_out, T_out)`. Gradients flow to `x` only.
+/// Values a weight `(C_out, C k)` packs into.
+fn panels_len(co: usize, ck: usize) -> usize {
+    co.div_ceil(super::product::WIDTH) * ck * super::product::WIDTH
+}
+
+/// A constant `weight (C_out, C, k)` packed for [`conv1d_constant`]'s products (a 1-D tensor;
+/// compute it once per loaded weight).
+pub fn packed_weight(weight: &Tensor) -> Result<Tensor> {
+    let (co, ci, k) = weight.dims3()?;
+    let flat = weight.flatten_all()?;
+    let dev = weight.device();
+    match weight.dtype() {
+        candle_core::DType::F32 => {
+            Tensor::new(left_panels(&flat.to_vec1::<f32>()?, co, ci * k), dev)
+        }
+        candle_core::DType::F64 => {
+            Tensor::new(left_panels(&flat.to_vec1::<f64>()?, co, ci * k), dev)
+        }
+        other => candle_core::bail!("conv1d: unsupported weight dtype {other:?}"),
+    }
+}
+
+/// `x (B, C, T)` convolved with a constant `weight (C_out, C, k)` (with `packed`, its
+/// [`packed_weight`]) plus `bias (C_out)`, with per-sample products (batch-invariant): `(B,
+/// C_out, T_out)`. Gradients flow to `x` only.
 pub fn conv1d_constant(
     x: &Tensor,
-    weight: &Tensor,
+    (weight, packed): (&Tensor, &Tensor),
     bias: &Tensor,
     stride: usize,
     pad: usize,
@@ -226,9 +263,11 @@ pub fn conv1d_constant(
         stride,
         pad,
     };
-    x.contiguous()?.apply_op3(
-        &weight.contiguous()?,
-        &bias.contiguous()?,
-        ConstantWeightConv1d(g),
-    )
+    let op = ConstantWeightConv1d {
+        g,
+        weight: weight.clone(),
+        co,
+    };
+    x.contiguous()?
+        .apply_op3(&packed.contiguous()?, &bias.contiguous()?, op)
 }

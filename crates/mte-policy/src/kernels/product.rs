@@ -1,0 +1,440 @@
+//! The matrix product of the per-sample path ([`super::batch`]), with every output element's
+//! arithmetic fixed by definition:
+//!
+//! `out[i, j] = fma(a[i, K-1], b[K-1, j], … fma(a[i, 1], b[1, j], fma(a[i, 0], b[0, j], 0)))`,
+//!
+//! one fused multiply-add per term, in the order of `k`, from zero. Nothing about the
+//! element's neighbours (how many rows or columns the product has, which tile or thread
+//! computes the element) enters its value, so a sample's result is the same bits in a batch
+//! of one, in a batch of 64, and on any number of threads; and since a fused multiply-add is
+//! exactly rounded by definition, the AVX-512, AVX2 and NEON builds of the loop (through
+//! `multiversion`) give the same bits as each other and as the scalar `mul_add` of the
+//! baseline build (which, on an x86-64 CPU without FMA, is a slow library call).
+//!
+//! Why not the `gemm` crate that candle calls: it picks its blocking and its microkernels
+//! from the product's shape, so batch invariance needed one call per sample, and a sample of
+//! the U-Net has 16 columns (the horizon), where `gemm` runs its narrow edge kernels: at
+//! batch 64 they took 27% of the `cpu` U-Net's forward (a `perf` profile of
+//! `benches/unet.rs`). Here a register tile of [`MR`] rows by [`NR`] columns (16 columns: one
+//! sample's horizon, in one AVX-512 or two AVX2 registers) walks the whole depth `K` without
+//! blocking.
+//!
+//! Layouts: `a` is `(m, K)` row-major, `b` `(K, n)` row-major, `out` `(m, n)` row-major, all
+//! contiguous (callers transpose a shared operand once per call, not once per sample).
+
+use super::batch::Side;
+
+/// Vector lanes of a register tile (one AVX2 register of f32): output lines of the batch
+/// operand.
+pub(super) const LANES: usize = 8;
+/// Scalar width of a register tile: output lines of the shared operand (12 accumulators, a
+/// vector load and a broadcast fill 14 of AVX2's 16 registers).
+pub(super) const WIDTH: usize = 12;
+
+/// Vector panels per cache block: each block's panels (`k` × [`LANES`] elements apiece) are
+/// reused by every scalar group while they sit in the L2 cache.
+const BLOCK_BYTES: usize = 192 * 1024;
+
+/// A float the product is defined for: `mul_add` is the fused multiply-add.
+pub(super) trait Element: Copy + Send + Sync + 'static {
+    const ZERO: Self;
+    fn mul_add(self, b: Self, c: Self) -> Self;
+}
+
+impl Element for f32 {
+    const ZERO: Self = 0.0;
+    #[inline(always)]
+    fn mul_add(self, b: Self, c: Self) -> Self {
+        f32::mul_add(self, b, c)
+    }
+}
+
+impl Element for f64 {
+    const ZERO: Self = 0.0;
+    #[inline(always)]
+    fn mul_add(self, b: Self, c: Self) -> Self {
+        f64::mul_add(self, b, c)
+    }
+}
+
+/// Dimensions of one sample's product: `(m, K) · (K, n)`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct Dims {
+    pub m: usize,
+    pub k: usize,
+    pub n: usize,
+}
+
+/// The shared operand as stored.
+#[derive(Clone, Copy, Debug)]
+pub(super) enum Shared<'a, T> {
+    /// The matrix multiplied, row-major, or (`transposed`) its transpose, row-major: packed
+    /// into [`Shared::Panels`] once per call.
+    Plain { data: &'a [T], transposed: bool },
+    /// Already packed by [`panels`] (a constant weight, packed once when loaded).
+    Panels(&'a [T]),
+}
+
+/// The scalar side's lines packed for the register tiles: line group `q` (lines `q W ..`,
+/// `W` = [`WIDTH`]), depth `kk`, line `c` at `[(q K + kk) W + c]`; lines past the last are
+/// zero. `line(l, kk)` reads the unpacked matrix.
+fn pack<T: Element>(count: usize, k: usize, line: impl Fn(usize, usize) -> T) -> Vec<T> {
+    let mut out = vec![T::ZERO; count.div_ceil(WIDTH) * k * WIDTH];
+    for (q, group) in out.chunks_mut(k * WIDTH).enumerate() {
+        for (kk, row) in group.chunks_mut(WIDTH).enumerate() {
+            for (c, v) in row.iter_mut().enumerate().take(count - q * WIDTH) {
+                *v = line(q * WIDTH + c, kk);
+            }
+        }
+    }
+    out
+}
+
+/// A shared left operand `w (m, K)` (row-major) packed as [`Shared::Panels`].
+pub(super) fn left_panels<T: Element>(w: &[T], m: usize, k: usize) -> Vec<T> {
+    pack(m, k, |i, kk| w[i * k + kk])
+}
+
+/// Each sample's product with the shared matrix `w` on `side`: `Left`, `out_b (m, n) = w (m,
+/// K) · x_b (K, n)`; `Right`, `out_b (m, n) = x_b (m, K) · w (K, n)`; `x` and `out` hold
+/// `batch` row-major matrices back to back.
+///
+/// The samples' free lines (the columns of every `x_b` on the left, their rows on the right)
+/// form one vector side, tiled [`LANES`] at a time across sample boundaries; the shared
+/// matrix's free lines form the scalar side, packed into panels of [`WIDTH`] lines once per
+/// call (or once per weight, [`Shared::Panels`]). Callers pass slices of the sizes `d` and `batch`
+/// give (from storages they checked: a shorter slice is an internal error, and panics).
+pub(super) fn products<T: Element>(
+    side: Side,
+    w: Shared<'_, T>,
+    x: &[T],
+    d: Dims,
+    batch: usize,
+    out: &mut [T],
+) {
+    let out = &mut out[..batch * d.m * d.n];
+    if out.is_empty() {
+        return;
+    }
+    if d.k == 0 {
+        out.fill(T::ZERO);
+        return;
+    }
+    let vector = VectorSide { side, x, d, batch };
+    // The scalar side's lines: the rows of `w` on the left, its columns on the right.
+    let count = match side {
+        Side::Left => d.m,
+        Side::Right => d.n,
+    };
+    let packed;
+    let scalars = match w {
+        Shared::Panels(p) => &p[..count.div_ceil(WIDTH) * d.k * WIDTH],
+        Shared::Plain { data, transposed } => {
+            // Element (line l, depth kk) of the stored matrix.
+            let (rows_are_lines, cols) = match side {
+                Side::Left => (!transposed, if transposed { d.m } else { d.k }),
+                Side::Right => (transposed, if transposed { d.k } else { d.n }),
+            };
+            packed = if rows_are_lines {
+                pack(count, d.k, |l, kk| data[l * cols + kk])
+            } else {
+                pack(count, d.k, |l, kk| data[kk * cols + l])
+            };
+            &packed[..]
+        }
+    };
+    let panels = vector.panels();
+    let per_block = (BLOCK_BYTES / (d.k * LANES * std::mem::size_of::<T>())).max(1);
+    for (bi, block) in panels.chunks(per_block * d.k * LANES).enumerate() {
+        let first = bi * per_block;
+        grid(
+            block,
+            scalars,
+            (d.k, count),
+            |p, c0, tile: &[[T; LANES]]| {
+                vector.store(out, (first + p) * LANES, c0, tile);
+            },
+        );
+    }
+}
+
+/// The batch operand's lines.
+#[derive(Clone, Copy, Debug)]
+struct VectorSide<'a, T> {
+    side: Side,
+    x: &'a [T],
+    d: Dims,
+    batch: usize,
+}
+
+impl<T: Element> VectorSide<'_, T> {
+    /// How many lines: every sample's columns (left) or rows (right).
+    fn count(&self) -> usize {
+        self.batch
+            * match self.side {
+                Side::Left => self.d.n,
+                Side::Right => self.d.m,
+            }
+    }
+
+    /// Where vector line `g`'s element `kk` sits in `x`: `base + kk · step`.
+    fn line(&self, g: usize) -> (usize, usize) {
+        let Dims { m, k, n } = self.d;
+        match self.side {
+            // Column j of sample b: x[b K n + kk n + j].
+            Side::Left => ((g / n) * k * n + g % n, n),
+            // Row g of the stacked samples: x[g K + kk].
+            Side::Right => {
+                let _ = m;
+                (g * k, 1)
+            }
+        }
+    }
+
+    /// Where vector line `g`'s output for scalar line `c` sits in `out`: `base + c · step`.
+    fn output(&self, g: usize) -> (usize, usize) {
+        let Dims { m, n, .. } = self.d;
+        match self.side {
+            Side::Left => ((g / n) * m * n + g % n, n),
+            Side::Right => (g * n, 1),
+        }
+    }
+
+    /// Panels of [`LANES`] lines, depth-major: panel `p`, depth `kk`, lane `r` at
+    /// `[(p K + kk) LANES + r]`; lanes past the last line are zero.
+    fn panels(&self) -> Vec<T> {
+        let (k, count) = (self.d.k, self.count());
+        let mut out = vec![T::ZERO; count.div_ceil(LANES) * k * LANES];
+        for (p, panel) in out.chunks_mut(k * LANES).enumerate() {
+            let lanes = (count - p * LANES).min(LANES);
+            let lines: [(usize, usize); LANES] =
+                std::array::from_fn(|r| self.line(p * LANES + r.min(lanes - 1)));
+            let step = lines[0].1;
+            // Eight neighbouring columns of one sample: one copy per depth.
+            let adjacent =
+                step > 1 && lanes == LANES && lines[LANES - 1].0 == lines[0].0 + LANES - 1;
+            for (kk, dst) in panel.chunks_mut(LANES).enumerate() {
+                if adjacent {
+                    dst.copy_from_slice(&self.x[lines[0].0 + kk * step..][..LANES]);
+                } else {
+                    for (d, &(base, step)) in dst.iter_mut().zip(&lines).take(lanes) {
+                        *d = self.x[base + kk * step];
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// Writes a tile: lanes from vector line `g0`, columns from scalar line `c0`.
+    fn store(&self, out: &mut [T], g0: usize, c0: usize, tile: &[[T; LANES]]) {
+        let lanes = (self.count() - g0).min(LANES);
+        for r in 0..lanes {
+            let (base, step) = self.output(g0 + r);
+            for (c, values) in tile.iter().enumerate() {
+                out[base + (c0 + c) * step] = values[r];
+            }
+        }
+    }
+}
+
+/// Every tile of one cache block: `panels` (vector panels, `k` deep) against every group of
+/// [`WIDTH`] scalar lines in `scalars` (packed by [`pack`]; `count` lines); `put(p, c0,
+/// tile)` receives panel `p`'s tile for the scalar lines from `c0`.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "aarch64+neon"))]
+fn grid<T: Element, F: FnMut(usize, usize, &[[T; LANES]])>(
+    panels: &[T],
+    scalars: &[T],
+    (k, count): (usize, usize),
+    mut put: F,
+) {
+    for (q, group) in scalars.chunks(k * WIDTH).enumerate() {
+        let c0 = q * WIDTH;
+        for (p, panel) in panels.chunks(k * LANES).enumerate() {
+            let at = group;
+            match count - c0 {
+                w if w >= WIDTH => put(p, c0, &tile::<T, WIDTH>(panel, at)),
+                11 => put(p, c0, &tile::<T, 11>(panel, at)),
+                10 => put(p, c0, &tile::<T, 10>(panel, at)),
+                9 => put(p, c0, &tile::<T, 9>(panel, at)),
+                8 => put(p, c0, &tile::<T, 8>(panel, at)),
+                7 => put(p, c0, &tile::<T, 7>(panel, at)),
+                6 => put(p, c0, &tile::<T, 6>(panel, at)),
+                5 => put(p, c0, &tile::<T, 5>(panel, at)),
+                4 => put(p, c0, &tile::<T, 4>(panel, at)),
+                3 => put(p, c0, &tile::<T, 3>(panel, at)),
+                2 => put(p, c0, &tile::<T, 2>(panel, at)),
+                _ => put(p, c0, &tile::<T, 1>(panel, at)),
+            }
+        }
+    }
+}
+
+/// The register tile: `W` scalar lines against one vector panel over the whole depth,
+/// `acc[c][r] = fma(v[kk][r], s[kk][c], acc[c][r])` for `kk` in order.
+#[inline(always)]
+fn tile<T: Element, const W: usize>(panel: &[T], group: &[T]) -> [[T; LANES]; W] {
+    let mut acc = [[T::ZERO; LANES]; W];
+    let (vs, _) = panel.as_chunks::<LANES>();
+    let (ss, _) = group.as_chunks::<WIDTH>();
+    for (v, sk) in vs.iter().zip(ss) {
+        for c in 0..W {
+            let sv = sk[c];
+            for r in 0..LANES {
+                acc[c][r] = v[r].mul_add(sv, acc[c][r]);
+            }
+        }
+    }
+    acc
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The definition, one element at a time, from row-major `a (m, k)` and `b (k, n)`.
+    fn oracle<T: Element>(a: &[T], b: &[T], d: Dims) -> Vec<T> {
+        let mut out = vec![T::ZERO; d.m * d.n];
+        for i in 0..d.m {
+            for j in 0..d.n {
+                let mut acc = T::ZERO;
+                for kk in 0..d.k {
+                    acc = a[i * d.k + kk].mul_add(b[kk * d.n + j], acc);
+                }
+                out[i * d.n + j] = acc;
+            }
+        }
+        out
+    }
+
+    fn fill(len: usize, seed: u64) -> Vec<f32> {
+        let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        (0..len)
+            .map(|_| {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                (s >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
+            })
+            .collect()
+    }
+
+    /// `(r, c)` row-major → its transpose, row-major.
+    fn transpose(x: &[f32], r: usize, c: usize) -> Vec<f32> {
+        (0..c)
+            .flat_map(|j| (0..r).map(move |i| x[i * c + j]))
+            .collect()
+    }
+
+    /// Both sides; tall and wide outputs, every tail of both tile sides (lanes across sample
+    /// boundaries), a depth of one, blocks of several cache blocks; the shared matrix stored
+    /// plain and transposed: each sample's result is the definition's, bit for bit.
+    #[test]
+    fn every_element_is_the_definition_bit_for_bit() {
+        let shapes = [
+            (1, 1, 1, 1),
+            (6, 7, 16, 3),
+            (13, 33, 29, 2),
+            (5, 1, 45, 4),
+            (1, 40, 37, 3),
+            (37, 40, 1, 3),
+            (64, 320, 16, 9),
+            (17, 9, 4, 2),
+            (30, 1300, 16, 9),
+        ];
+        for (m, k, n, batch) in shapes {
+            let d = Dims { m, k, n };
+            for side in [Side::Left, Side::Right] {
+                let (wr, wc, xr, xc) = match side {
+                    Side::Left => (m, k, k, n),
+                    Side::Right => (k, n, m, k),
+                };
+                let (w, x) = (fill(wr * wc, 1), fill(batch * xr * xc, 2));
+                for transposed in [false, true] {
+                    let stored = if transposed {
+                        transpose(&w, wr, wc)
+                    } else {
+                        w.clone()
+                    };
+                    let shared = Shared::Plain {
+                        data: &stored,
+                        transposed,
+                    };
+                    let mut out = vec![f32::NAN; batch * m * n];
+                    products(side, shared, &x, d, batch, &mut out);
+                    if matches!(side, Side::Left) {
+                        // A weight packed once gives the same bits.
+                        let panels = left_panels(&w, m, k);
+                        let mut again = vec![f32::NAN; batch * m * n];
+                        products(side, Shared::Panels(&panels), &x, d, batch, &mut again);
+                        assert!(
+                            again
+                                .iter()
+                                .zip(&out)
+                                .all(|(a, b)| a.to_bits() == b.to_bits())
+                        );
+                    }
+                    for s in 0..batch {
+                        let x_b = &x[s * xr * xc..][..xr * xc];
+                        let want = match side {
+                            Side::Left => oracle(&w, x_b, d),
+                            Side::Right => oracle(x_b, &w, d),
+                        };
+                        let got = &out[s * m * n..][..m * n];
+                        let same = got
+                            .iter()
+                            .zip(&want)
+                            .all(|(g, w)| g.to_bits() == w.to_bits());
+                        assert!(
+                            same,
+                            "{m}x{k}x{n}, {side:?}, transposed {transposed}, sample {s}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    /// The values are the product (against float64, to float32 rounding of a sum of `k`
+    /// terms in [-1, 1]), in f32 and in f64.
+    #[test]
+    fn it_is_the_product() {
+        let d = Dims { m: 9, k: 70, n: 21 };
+        let (a, b) = (fill(d.m * d.k, 3), fill(d.k * d.n, 4));
+        let plain = |data| Shared::Plain {
+            data,
+            transposed: false,
+        };
+        let mut out = vec![0f32; d.m * d.n];
+        products(Side::Left, plain(&a), &b, d, 1, &mut out);
+        let a64: Vec<f64> = a.iter().map(|&v| f64::from(v)).collect();
+        let b64: Vec<f64> = b.iter().map(|&v| f64::from(v)).collect();
+        let mut out64 = vec![0f64; d.m * d.n];
+        let plain64 = |data| Shared::Plain {
+            data,
+            transposed: false,
+        };
+        products(
+            Side::Right,
+            plain64(&b64),
+            &a64,
+            Dims {
+                m: d.m,
+                k: d.k,
+                n: d.n,
+            },
+            1,
+            &mut out64,
+        );
+        for i in 0..d.m {
+            for j in 0..d.n {
+                let want: f64 = (0..d.k)
+                    .map(|kk| a64[i * d.k + kk] * b64[kk * d.n + j])
+                    .sum();
+                let got = f64::from(out[i * d.n + j]);
+                assert!((got - want).abs() < 1e-5 * d.k as f64, "{got} vs {want}");
+                assert!((out64[i * d.n + j] - want).abs() < 1e-12, "f64");
+            }
+        }
+    }
+}

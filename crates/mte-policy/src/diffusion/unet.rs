@@ -184,7 +184,6 @@ pub struct ResidualBlock {
     cond_encoder: Linear,
     conv2: Conv1dBlock,
     residual_conv: Option<Conv1dGemm>,
-    out_channels: usize,
     film_scale: bool,
 }
 
@@ -214,7 +213,6 @@ impl ResidualBlock {
             cond_encoder,
             conv2,
             residual_conv,
-            out_channels: cout,
             film_scale: c.use_film_scale_modulation,
         })
     }
@@ -226,15 +224,9 @@ impl ResidualBlock {
             .cond_encoder
             // Every block reads `cond`: candle's composition keeps the order in which its
             // gradient is summed (`kernels::mish` is for single-reader inputs).
-            .forward(&candle_nn::ops::mish(cond)?, products)?
-            .unsqueeze(D::Minus1)?;
-        let out = if self.film_scale {
-            let scale = emb.narrow(1, 0, self.out_channels)?;
-            let bias = emb.narrow(1, self.out_channels, self.out_channels)?;
-            out.broadcast_mul(&scale)?.broadcast_add(&bias)?
-        } else {
-            out.broadcast_add(&emb)?
-        };
+            .forward(&candle_nn::ops::mish(cond)?, products)?;
+        // One pass (`kernels::film`): scale then bias, or bias only.
+        let out = crate::kernels::film(&out, &emb, self.film_scale)?;
         let out = self.conv2.forward(&out, products)?;
         let res = match &self.residual_conv {
             Some(c) => c.forward(x, products)?,

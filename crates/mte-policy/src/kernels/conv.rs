@@ -122,6 +122,41 @@ fn im2col<T: Copy + Default + Send + Sync>(x: &[T], b: usize, g: Geom) -> Vec<T>
     out
 }
 
+/// `(B, C, H, W)` → `(B, C k_h k_w, L)`: [`im2col`]'s columns transposed, each column's
+/// taps along the output positions (the layout the constant-weight convolution multiplies).
+fn im2col_t<T: Copy + Default + Send + Sync>(x: &[T], b: usize, g: Geom) -> Vec<T> {
+    let (ho, wo) = g.out_hw();
+    let (l, ckk, img, kk) = (ho * wo, g.ckk(), g.c * g.h * g.w, g.kh * g.kw);
+    let mut out = vec![T::default(); b * ckk * l];
+    out.par_chunks_mut(ckk * l)
+        .zip(x.par_chunks(img))
+        .for_each(|(cols, src)| {
+            for ci in 0..g.c {
+                for ky in 0..g.kh {
+                    let (oy_lo, oy_hi) = taps_inside(ky, g.pad, g.stride, g.h, ho);
+                    for kx in 0..g.kw {
+                        let (ox_lo, ox_hi) = taps_inside(kx, g.pad, g.stride, g.w, wo);
+                        let row = &mut cols[(ci * kk + ky * g.kw + kx) * l..][..l];
+                        for oy in oy_lo..oy_hi {
+                            let iy = oy * g.stride + ky - g.pad;
+                            let srow = &src[(ci * g.h + iy) * g.w..][..g.w];
+                            let drow = &mut row[oy * wo..][..wo];
+                            if g.stride == 1 {
+                                drow[ox_lo..ox_hi]
+                                    .copy_from_slice(&srow[ox_lo + kx - g.pad..ox_hi + kx - g.pad]);
+                            } else {
+                                for (ox, d) in drow.iter_mut().enumerate().take(ox_hi).skip(ox_lo) {
+                                    *d = srow[ox * g.stride + kx - g.pad];
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        });
+    out
+}
+
 /// `(B, L, C k_h k_w)` → `(B, C, H, W)`, summing overlapping taps (im2col's adjoint).
 ///
 /// Each input element starts at zero and adds its taps in the order of their output
@@ -135,7 +170,7 @@ where
     T: Copy + Default + Send + Sync + std::ops::AddAssign,
 {
     let (ho, wo) = g.out_hw();
-    let (l, ckk, img, kk) = (ho * wo, g.ckk(), g.c * g.h * g.w, g.kh * g.kw);
+    let (l, ckk, img) = (ho * wo, g.ckk(), g.c * g.h * g.w);
     let mut out = vec![T::default(); b * img];
     out.par_chunks_mut(img)
         .zip(cols.par_chunks(l * ckk))
@@ -151,31 +186,53 @@ where
                     }
                 }
             }
-            for ci in 0..g.c {
-                for ky in (0..g.kh).rev() {
-                    let (oy_lo, oy_hi) = taps_inside(ky, g.pad, g.stride, g.h, ho);
-                    for kx in (0..g.kw).rev() {
-                        let (ox_lo, ox_hi) = taps_inside(kx, g.pad, g.stride, g.w, wo);
-                        let taps = &t[(ci * kk + ky * g.kw + kx) * l..][..l];
-                        for oy in oy_lo..oy_hi {
-                            let iy = oy * g.stride + ky - g.pad;
-                            let drow = &mut dst[(ci * g.h + iy) * g.w..][..g.w];
-                            let trow = &taps[oy * wo..][..wo];
-                            if g.stride == 1 {
-                                let d = &mut drow[ox_lo + kx - g.pad..ox_hi + kx - g.pad];
-                                for (a, &v) in d.iter_mut().zip(&trow[ox_lo..ox_hi]) {
-                                    *a += v;
-                                }
-                            } else {
-                                for (ox, &v) in trow.iter().enumerate().take(ox_hi).skip(ox_lo) {
-                                    drow[ox * g.stride + kx - g.pad] += v;
-                                }
-                            }
+            col2im_image(&t, dst, g);
+        });
+    out
+}
+
+/// One image's columns, transposed `(C k_h k_w, L)`, summed into its input gradient `dst (C,
+/// H, W)` in [`col2im`]'s order.
+fn col2im_image<T: Copy + std::ops::AddAssign>(t: &[T], dst: &mut [T], g: Geom) {
+    let (ho, wo) = g.out_hw();
+    let (l, kk) = (ho * wo, g.kh * g.kw);
+    for ci in 0..g.c {
+        for ky in (0..g.kh).rev() {
+            let (oy_lo, oy_hi) = taps_inside(ky, g.pad, g.stride, g.h, ho);
+            for kx in (0..g.kw).rev() {
+                let (ox_lo, ox_hi) = taps_inside(kx, g.pad, g.stride, g.w, wo);
+                let taps = &t[(ci * kk + ky * g.kw + kx) * l..][..l];
+                for oy in oy_lo..oy_hi {
+                    let iy = oy * g.stride + ky - g.pad;
+                    let drow = &mut dst[(ci * g.h + iy) * g.w..][..g.w];
+                    let trow = &taps[oy * wo..][..wo];
+                    if g.stride == 1 {
+                        let d = &mut drow[ox_lo + kx - g.pad..ox_hi + kx - g.pad];
+                        for (a, &v) in d.iter_mut().zip(&trow[ox_lo..ox_hi]) {
+                            *a += v;
+                        }
+                    } else {
+                        for (ox, &v) in trow.iter().enumerate().take(ox_hi).skip(ox_lo) {
+                            drow[ox * g.stride + kx - g.pad] += v;
                         }
                     }
                 }
             }
-        });
+        }
+    }
+}
+
+/// `(B, C k_h k_w, L)` → `(B, C, H, W)`: [`col2im`] of columns already transposed.
+fn col2im_t<T>(cols: &[T], b: usize, g: Geom) -> Vec<T>
+where
+    T: Copy + Default + Send + Sync + std::ops::AddAssign,
+{
+    let (ho, wo) = g.out_hw();
+    let (l, ckk, img) = (ho * wo, g.ckk(), g.c * g.h * g.w);
+    let mut out = vec![T::default(); b * img];
+    out.par_chunks_mut(img)
+        .zip(cols.par_chunks(l * ckk))
+        .for_each(|(dst, src)| col2im_image(src, dst, g));
     out
 }
 
@@ -222,23 +279,43 @@ impl CustomOp1 for Col2Im {
     }
 }
 
-/// The per-image convolution of [`conv2d`] for a constant weight, as one graph node:
-/// im2col, each image's product with the weight and the transpose to `(B, C_out, H_out,
-/// W_out)` in one forward, and the input's gradient (the products with the weight, then
-/// col2im) in one backward. The composed path (im2col, reshape, per-sample product,
-/// transpose, copy) computes the same products in the same order, so the values are the
-/// same bits; what is saved is the backward pass's zero-filled gradient buffer and addition
-/// for each of the five intermediate nodes (two of them of the columns' size, `k_h k_w`
-/// times the input's). The weight gets no gradient: it is used only when it is not tracked.
+/// `(B, C k_h k_w, L)` → `(B, C, H, W)`: [`Col2Im`] of transposed columns.
+#[derive(Clone, Copy, Debug)]
+struct Col2ImT(Geom);
+
+impl CustomOp1 for Col2ImT {
+    fn name(&self) -> &'static str {
+        "mte-col2im-t"
+    }
+
+    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        let g = self.0;
+        let b = layout.dims()[0];
+        let shape = Shape::from((b, g.c, g.h, g.w));
+        let out = float_storages!("col2im", [(v, storage, layout)], col2im_t(v, b, g));
+        Ok((out, shape))
+    }
+}
+
+/// The per-image convolution of [`conv2d`] for a constant weight, as one graph node: the
+/// transposed im2col `(C k_h k_w, L)` and each image's product `W · cols` straight into `(B,
+/// C_out, H_out W_out)` in one forward, and the input's gradient (`Wᵀ · g`, then col2im) in
+/// one backward. The composed path (im2col, reshape, per-sample product `cols · Wᵀ`,
+/// transpose, copy) gives the same bits: `kernels::product` defines each element as the same
+/// chain of fused multiply-adds whichever side the weight is on. What is saved is the
+/// transposes and the backward pass's zero-filled gradient buffer and addition for each of the
+/// five intermediate nodes (two of them of the columns' size, `k_h k_w` times the input's).
+/// The weight gets no gradient: it is used only when it is not tracked.
 #[derive(Clone, Copy, Debug)]
 struct ConstantWeightConv(Geom);
 
 impl ConstantWeightConv {
-    /// The product of each image's columns `(L, C k k)` with the stored weight `(C_out, C k
-    /// k)` read transposed, as [`super::batch`]'s per-sample product computes it.
+    /// The stored weight `(C_out, C k k)` times each image's transposed columns `(C k k,
+    /// L)`, as [`super::batch`]'s per-sample product computes it: the output comes out as
+    /// `(C_out, L)`, the convolution's own layout.
     const PRODUCT: super::batch::PerSampleProduct = super::batch::PerSampleProduct {
-        side: super::batch::Side::Right,
-        transpose: true,
+        side: super::batch::Side::Left,
+        transpose: false,
     };
 
     fn forward<T>(&self, x: &[T], b: usize, w: &CpuStorage, lw: &Layout) -> Result<CpuStorage>
@@ -252,24 +329,14 @@ impl ConstantWeightConv {
         let Some((w0, _)) = lw.contiguous_offsets() else {
             candle_core::bail!("conv2d: the weight must be contiguous");
         };
-        let cols = T::to_cpu_storage_owned(im2col(x, b, g));
+        let cols = T::to_cpu_storage_owned(im2col_t(x, b, g));
         let (y, _) = Self::PRODUCT.forward::<T>(
             &cols,
-            &Layout::contiguous((b, l, ckk)),
+            &Layout::contiguous((b, ckk, l)),
             w,
             &Layout::contiguous_with_offset((co, ckk), w0),
         )?;
-        // (B, L, C_out) -> (B, C_out, L).
-        let y = y.as_slice::<T>()?;
-        let mut out = vec![T::default(); b * co * l];
-        for (dst, src) in out.chunks_mut(co * l).zip(y.chunks(l * co)) {
-            for (p, row) in src.chunks(co).enumerate() {
-                for (c, &v) in row.iter().enumerate() {
-                    dst[c * l + p] = v;
-                }
-            }
-        }
-        Ok(T::to_cpu_storage_owned(out))
+        Ok(y)
     }
 }
 
@@ -314,17 +381,15 @@ impl CustomOp2 for ConstantWeightConv {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let g = self.0;
         let (b, co, ho, wo) = grad.dims4()?;
-        // (B, C_out, L) -> (B, L, C_out), times the stored weight (C_out, C k k).
-        let grad = grad
-            .reshape((b, co, ho * wo))?
-            .transpose(1, 2)?
-            .contiguous()?;
+        // Wᵀ (C k k, C_out) times each image's gradient (C_out, L): the columns' gradient,
+        // transposed, (B, C k k, L).
+        let grad = grad.reshape((b, co, ho * wo))?.contiguous()?;
         let back = super::batch::PerSampleProduct {
-            side: super::batch::Side::Right,
-            transpose: false,
+            side: super::batch::Side::Left,
+            transpose: true,
         };
         let dcols = grad.apply_op2_no_bwd(&w.reshape((co, g.ckk()))?, &back)?;
-        Ok((Some(dcols.apply_op1_no_bwd(&Col2Im(g))?), None))
+        Ok((Some(dcols.apply_op1_no_bwd(&Col2ImT(g))?), None))
     }
 }
 
@@ -555,6 +620,15 @@ mod tests {
                 }
             }
             assert_eq!(im2col(&x, b, g), want, "im2col, case {i}");
+            // The transposed layout holds the same columns.
+            let per_image = |v: &[f32]| -> Vec<f32> {
+                v.chunks(l * ckk)
+                    .flat_map(|m| {
+                        (0..ckk).flat_map(move |col| (0..l).map(move |p| m[p * ckk + col]))
+                    })
+                    .collect()
+            };
+            assert_eq!(im2col_t(&x, b, g), per_image(&want), "im2col_t, case {i}");
             let cols: Vec<f32> = rand(&[b * l * ckk], 50 + i as u64)
                 .to_vec1::<f64>()
                 .expect("cols")
@@ -570,6 +644,13 @@ mod tests {
                 }
             }
             let got = col2im(&cols, b, g);
+            let got_t = col2im_t(&per_image(&cols), b, g);
+            assert!(
+                got.iter()
+                    .zip(&got_t)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "col2im_t, case {i}"
+            );
             let same = got
                 .iter()
                 .zip(&want)

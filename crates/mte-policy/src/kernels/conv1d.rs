@@ -36,27 +36,48 @@ impl Geom1 {
     }
 }
 
-/// `(B, C, T)` → columns `(B, C k, T_out)`.
-fn columns<T: Copy + Default>(x: &[T], b: usize, g: Geom1) -> Vec<T> {
-    let to = g.t_out();
-    let mut cols = vec![T::default(); b * g.c * g.k * to];
-    for (dst, src) in cols.chunks_mut(g.c * g.k * to).zip(x.chunks(g.c * g.t)) {
+/// `(B, C, T)` → the columns `(B, C k, T_out)` packed straight into
+/// `kernels::product`'s vector panels: lane `r` of panel `p` is output position `g = 8 p + r`
+/// of the batch (`g = b T_out + t`), depth `c k + j` reads input `t · stride + j - pad` of
+/// channel `c` (zero outside), so no im2col copy is made.
+fn column_panels<T: Copy + Default>(x: &[T], b: usize, g: Geom1) -> Vec<T> {
+    const LANES: usize = super::product::LANES;
+    let (to, ck) = (g.t_out(), g.c * g.k);
+    let count = b * to;
+    let mut out = vec![T::default(); count.div_ceil(LANES) * ck * LANES];
+    for (p, panel) in out.chunks_mut(ck * LANES).enumerate() {
+        let g0 = p * LANES;
+        let lanes = (count - g0).min(LANES);
+        let (rows, _) = panel.as_chunks_mut::<LANES>();
+        let (b0, t0) = (g0 / to, g0 % to);
+        // Each lane's sample offset and first input position.
+        let lane: [(usize, usize); LANES] = std::array::from_fn(|r| {
+            let gl = g0 + r.min(lanes - 1);
+            ((gl / to) * g.c * g.t, (gl % to) * g.stride)
+        });
+        // Eight positions of one sample at stride 1: a tap's eight inputs are adjacent.
+        let one_run = g.stride == 1 && lanes == LANES && t0 + LANES <= to;
         for c in 0..g.c {
-            let xs = &src[c * g.t..][..g.t];
             for j in 0..g.k {
-                let row = &mut dst[(c * g.k + j) * to..][..to];
-                let (lo, hi) = taps_inside(j, g.pad, g.stride, g.t, to);
-                if g.stride == 1 {
-                    row[lo..hi].copy_from_slice(&xs[lo + j - g.pad..hi + j - g.pad]);
-                } else {
-                    for (o, v) in row.iter_mut().enumerate().take(hi).skip(lo) {
-                        *v = xs[o * g.stride + j - g.pad];
+                let dst = &mut rows[c * g.k + j];
+                let first = t0 + j;
+                if one_run && first >= g.pad && first - g.pad + LANES <= g.t {
+                    let xs = &x[(b0 * g.c + c) * g.t + first - g.pad..];
+                    if let Some(src) = xs.first_chunk::<LANES>() {
+                        *dst = *src;
+                    }
+                    continue;
+                }
+                for (d, &(base, start)) in dst.iter_mut().zip(&lane).take(lanes) {
+                    let pos = start + j;
+                    if pos >= g.pad && pos - g.pad < g.t {
+                        *d = x[base + c * g.t + pos - g.pad];
                     }
                 }
             }
         }
     }
-    cols
+    out
 }
 
 /// Columns' gradient `(B, C k, T_out)` → the input's `(B, C, T)`: each element sums its taps
@@ -107,7 +128,7 @@ impl ConstantWeightConv1d {
     ) -> Result<CpuStorage> {
         let (g, co) = (self.g, self.co);
         let to = g.t_out();
-        let cols = columns(x, b, g);
+        let panels = column_panels(x, b, g);
         let mut y = vec![T::default(); b * co * to];
         let dims = Dims {
             m: co,
@@ -121,7 +142,7 @@ impl ConstantWeightConv1d {
                 panels_len(co, dims.k)
             );
         }
-        super::product::products(Side::Left, Shared::Panels(packed), &cols, dims, b, &mut y);
+        super::product::left_products_packed(Shared::Panels(packed), &panels, dims, b, &mut y);
         for sample in y.chunks_mut(co * to) {
             for (row, &bv) in sample.chunks_mut(to).zip(bias) {
                 for v in row {

@@ -37,6 +37,7 @@ mod batch;
 mod conv;
 mod conv1d;
 mod exact_norm;
+mod film;
 mod norm;
 mod pool;
 mod product;
@@ -46,6 +47,7 @@ pub use batch::{Linear, Products, left_shared, linear, right_shared};
 pub use conv::{Conv2d, conv2d};
 pub use conv1d::{constant_weights, conv1d_constant, packed_weight};
 pub use exact_norm::group_norm_exact;
+pub use film::film;
 pub use norm::{GroupNorm, group_norm};
 pub use pool::max_pool_3x3_s2;
 

@@ -112,6 +112,37 @@ pub(super) fn products<T: Element>(
     batch: usize,
     out: &mut [T],
 ) {
+    let vector = VectorSide { side, x, d, batch };
+    with_panels(vector, w, &vector.panels(), out);
+}
+
+/// [`products`] on the left, with the batch's vector panels already packed (`panels`, in
+/// [`VectorSide::panels`]' layout: `batch · n` lines, sample-major), e.g. straight from a
+/// convolution's input without an im2col copy.
+pub(super) fn left_products_packed<T: Element>(
+    w: Shared<'_, T>,
+    panels: &[T],
+    d: Dims,
+    batch: usize,
+    out: &mut [T],
+) {
+    let vector = VectorSide {
+        side: Side::Left,
+        x: &[],
+        d,
+        batch,
+    };
+    with_panels(vector, w, panels, out);
+}
+
+/// The products of the batch's packed `panels` with `w`.
+fn with_panels<T: Element>(
+    vector: VectorSide<'_, T>,
+    w: Shared<'_, T>,
+    panels: &[T],
+    out: &mut [T],
+) {
+    let (side, d, batch) = (vector.side, vector.d, vector.batch);
     let out = &mut out[..batch * d.m * d.n];
     if out.is_empty() {
         return;
@@ -120,7 +151,6 @@ pub(super) fn products<T: Element>(
         out.fill(T::ZERO);
         return;
     }
-    let vector = VectorSide { side, x, d, batch };
     // The scalar side's lines: the rows of `w` on the left, its columns on the right.
     let count = match side {
         Side::Left => d.m,
@@ -143,7 +173,7 @@ pub(super) fn products<T: Element>(
             &packed[..]
         }
     };
-    let panels = vector.panels();
+    let panels = &panels[..vector.count().div_ceil(LANES) * d.k * LANES];
     let per_block = (BLOCK_BYTES / (d.k * LANES * std::mem::size_of::<T>())).max(1);
     for (bi, block) in panels.chunks(per_block * d.k * LANES).enumerate() {
         let first = bi * per_block;
@@ -213,9 +243,13 @@ impl<T: Element> VectorSide<'_, T> {
             // Eight neighbouring columns of one sample: one copy per depth.
             let adjacent =
                 step > 1 && lanes == LANES && lines[LANES - 1].0 == lines[0].0 + LANES - 1;
-            for (kk, dst) in panel.chunks_mut(LANES).enumerate() {
+            let (rows, _) = panel.as_chunks_mut::<LANES>();
+            for (kk, dst) in rows.iter_mut().enumerate() {
                 if adjacent {
-                    dst.copy_from_slice(&self.x[lines[0].0 + kk * step..][..LANES]);
+                    // A fixed-size copy: inlined, where a slice copy calls `memmove`.
+                    if let Some(src) = self.x[lines[0].0 + kk * step..].first_chunk::<LANES>() {
+                        *dst = *src;
+                    }
                 } else {
                     for (d, &(base, step)) in dst.iter_mut().zip(&lines).take(lanes) {
                         *d = self.x[base + kk * step];

@@ -4,23 +4,25 @@
 //! `out[i, j] = fma(a[i, K-1], b[K-1, j], … fma(a[i, 1], b[1, j], fma(a[i, 0], b[0, j], 0)))`,
 //!
 //! one fused multiply-add per term, in the order of `k`, from zero. Nothing about the
-//! element's neighbours (how many rows or columns the product has, which tile or thread
-//! computes the element) enters its value, so a sample's result is the same bits in a batch
-//! of one, in a batch of 64, and on any number of threads; and since a fused multiply-add is
-//! exactly rounded by definition, the AVX-512, AVX2 and NEON builds of the loop (through
-//! `multiversion`) give the same bits as each other and as the scalar `mul_add` of the
-//! baseline build (which, on an x86-64 CPU without FMA, is a slow library call).
+//! element's neighbours (how many rows or columns the product has, which tile computes the
+//! element, which samples share the call) enters its value, so a sample's result is the same
+//! bits in a batch of one and in a batch of 64; and since a fused multiply-add is exactly
+//! rounded by definition, the AVX2 and NEON builds of the tile loop (through `multiversion`)
+//! give the same bits as each other and as the scalar `mul_add` of the baseline build (which,
+//! on an x86-64 CPU without FMA, is a slow library call).
 //!
 //! Why not the `gemm` crate that candle calls: it picks its blocking and its microkernels
 //! from the product's shape, so batch invariance needed one call per sample, and a sample of
 //! the U-Net has 16 columns (the horizon), where `gemm` runs its narrow edge kernels: at
-//! batch 64 they took 27% of the `cpu` U-Net's forward (a `perf` profile of
-//! `benches/unet.rs`). Here a register tile of [`MR`] rows by [`NR`] columns (16 columns: one
-//! sample's horizon, in one AVX-512 or two AVX2 registers) walks the whole depth `K` without
-//! blocking.
+//! batch 64 they took 30% of the `cpu` U-Net's forward (a `perf` profile of
+//! `benches/unet.rs`). Here the batch's free lines (columns on the left, rows on the right)
+//! are tiled [`LANES`] at a time across sample boundaries against [`WIDTH`] lines of the
+//! shared matrix, each register tile walking the whole depth `K`; cache blocks group vector
+//! panels, never the depth.
 //!
-//! Layouts: `a` is `(m, K)` row-major, `b` `(K, n)` row-major, `out` `(m, n)` row-major, all
-//! contiguous (callers transpose a shared operand once per call, not once per sample).
+//! Layouts: every operand row-major and contiguous; the shared matrix may be stored
+//! transposed, and is packed into panels once per call ([`Shared::Plain`]) or once per
+//! weight ([`Shared::Panels`], from [`left_panels`]).
 
 use super::batch::Side;
 
@@ -71,7 +73,7 @@ pub(super) enum Shared<'a, T> {
     /// The matrix multiplied, row-major, or (`transposed`) its transpose, row-major: packed
     /// into [`Shared::Panels`] once per call.
     Plain { data: &'a [T], transposed: bool },
-    /// Already packed by [`panels`] (a constant weight, packed once when loaded).
+    /// Already packed by [`left_panels`] (a constant weight, packed once when loaded).
     Panels(&'a [T]),
 }
 
@@ -209,15 +211,12 @@ impl<T: Element> VectorSide<'_, T> {
 
     /// Where vector line `g`'s element `kk` sits in `x`: `base + kk · step`.
     fn line(&self, g: usize) -> (usize, usize) {
-        let Dims { m, k, n } = self.d;
+        let Dims { k, n, .. } = self.d;
         match self.side {
             // Column j of sample b: x[b K n + kk n + j].
             Side::Left => ((g / n) * k * n + g % n, n),
             // Row g of the stacked samples: x[g K + kk].
-            Side::Right => {
-                let _ = m;
-                (g * k, 1)
-            }
+            Side::Right => (g * k, 1),
         }
     }
 
@@ -341,16 +340,10 @@ mod tests {
         out
     }
 
+    /// `len` values in [-1, 1) from the kernels' shared test fill, as f32.
     fn fill(len: usize, seed: u64) -> Vec<f32> {
-        let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-        (0..len)
-            .map(|_| {
-                s ^= s << 13;
-                s ^= s >> 7;
-                s ^= s << 17;
-                (s >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
-            })
-            .collect()
+        let values = crate::kernels::test_util::rand(&[len], seed).to_vec1::<f64>();
+        values.expect("fill").iter().map(|&v| v as f32).collect()
     }
 
     /// `(r, c)` row-major → its transpose, row-major.

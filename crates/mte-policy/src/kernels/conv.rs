@@ -255,15 +255,21 @@ impl CustomOp1 for Im2Col {
     }
 
     fn bwd(&self, _arg: &Tensor, _res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
-        Ok(Some(
-            grad_res.contiguous()?.apply_op1_no_bwd(&Col2Im(self.0))?,
-        ))
+        Ok(Some(grad_res.contiguous()?.apply_op1_no_bwd(&Col2Im {
+            g: self.0,
+            transposed: false,
+        })?))
     }
 }
 
-/// `(B, L, C k_h k_w)` → `(B, C, H, W)`, summing overlapping taps (im2col's adjoint).
+/// Columns → `(B, C, H, W)`, summing overlapping taps (im2col's adjoint): `(B, L, C k_h
+/// k_w)` as [`im2col`] makes them, or (`transposed`) `(B, C k_h k_w, L)` as [`im2col_t`]
+/// does.
 #[derive(Clone, Copy, Debug)]
-struct Col2Im(Geom);
+struct Col2Im {
+    g: Geom,
+    transposed: bool,
+}
 
 impl CustomOp1 for Col2Im {
     fn name(&self) -> &'static str {
@@ -271,28 +277,18 @@ impl CustomOp1 for Col2Im {
     }
 
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
-        let g = self.0;
+        let g = self.g;
         let b = layout.dims()[0];
         let shape = Shape::from((b, g.c, g.h, g.w));
-        let out = float_storages!("col2im", [(v, storage, layout)], col2im(v, b, g));
-        Ok((out, shape))
-    }
-}
-
-/// `(B, C k_h k_w, L)` → `(B, C, H, W)`: [`Col2Im`] of transposed columns.
-#[derive(Clone, Copy, Debug)]
-struct Col2ImT(Geom);
-
-impl CustomOp1 for Col2ImT {
-    fn name(&self) -> &'static str {
-        "mte-col2im-t"
-    }
-
-    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
-        let g = self.0;
-        let b = layout.dims()[0];
-        let shape = Shape::from((b, g.c, g.h, g.w));
-        let out = float_storages!("col2im", [(v, storage, layout)], col2im_t(v, b, g));
+        let out = float_storages!(
+            "col2im",
+            [(v, storage, layout)],
+            if self.transposed {
+                col2im_t(v, b, g)
+            } else {
+                col2im(v, b, g)
+            }
+        );
         Ok((out, shape))
     }
 }
@@ -389,7 +385,11 @@ impl CustomOp2 for ConstantWeightConv {
             transpose: true,
         };
         let dcols = grad.apply_op2_no_bwd(&w.reshape((co, g.ckk()))?, &back)?;
-        Ok((Some(dcols.apply_op1_no_bwd(&Col2ImT(g))?), None))
+        let col2im = Col2Im {
+            g,
+            transposed: true,
+        };
+        Ok((Some(dcols.apply_op1_no_bwd(&col2im)?), None))
     }
 }
 

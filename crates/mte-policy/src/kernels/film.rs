@@ -101,6 +101,19 @@ fn backward<T: FilmFloat>(
     (dx, demb)
 }
 
+/// [`backward`] on tensors of one float type `T`: `(∂x, ∂emb)`, flat.
+fn gradients<T: FilmFloat + candle_core::WithDType>(
+    x: &Tensor,
+    emb: &Tensor,
+    grad: &Tensor,
+    ct: (usize, usize),
+    scale: bool,
+) -> Result<(Tensor, Tensor)> {
+    let flat = |t: &Tensor| t.flatten_all()?.to_vec1::<T>();
+    let (dx, de) = backward(&flat(x)?, &flat(emb)?, &flat(grad)?, ct, scale);
+    Ok((Tensor::new(dx, x.device())?, Tensor::new(de, x.device())?))
+}
+
 impl CustomOp2 for Film {
     fn name(&self) -> &'static str {
         "mte-film"
@@ -135,24 +148,10 @@ impl CustomOp2 for Film {
         let grad = grad.contiguous()?;
         let (dx, demb) = match (x.dtype(), emb.dtype()) {
             (candle_core::DType::F32, candle_core::DType::F32) => {
-                let (dx, de) = backward(
-                    &x.flatten_all()?.to_vec1::<f32>()?,
-                    &emb.flatten_all()?.to_vec1::<f32>()?,
-                    &grad.flatten_all()?.to_vec1::<f32>()?,
-                    (c, t),
-                    self.scale,
-                );
-                (Tensor::new(dx, x.device())?, Tensor::new(de, x.device())?)
+                gradients::<f32>(x, emb, &grad, (c, t), self.scale)?
             }
             (candle_core::DType::F64, candle_core::DType::F64) => {
-                let (dx, de) = backward(
-                    &x.flatten_all()?.to_vec1::<f64>()?,
-                    &emb.flatten_all()?.to_vec1::<f64>()?,
-                    &grad.flatten_all()?.to_vec1::<f64>()?,
-                    (c, t),
-                    self.scale,
-                );
-                (Tensor::new(dx, x.device())?, Tensor::new(de, x.device())?)
+                gradients::<f64>(x, emb, &grad, (c, t), self.scale)?
             }
             (a, b) => candle_core::bail!("film backward: unsupported dtypes {a:?}, {b:?}"),
         };

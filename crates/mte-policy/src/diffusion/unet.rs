@@ -261,6 +261,9 @@ pub struct Upsample {
     weight: Tensor,
     bias: Tensor,
     k: usize,
+    /// The equivalent convolution of constant weights, made once (with its packed weight):
+    /// rebuilding it per forward repacked the weight every time.
+    constant: std::sync::OnceLock<Conv1dGemm>,
 }
 
 impl Upsample {
@@ -275,7 +278,22 @@ impl Upsample {
             weight: vb.get_with_hints((cin, cout, k), "weight", init)?,
             bias: vb.get_with_hints(cout, "bias", init)?,
             k,
+            constant: std::sync::OnceLock::new(),
         })
+    }
+
+    /// The stride-1 convolution that equals this transposed convolution on a zero-stuffed
+    /// input: the kernel flipped, in and out channels swapped (`W'[o, i, j] = W[i, o, k - 1 -
+    /// j]`), padding `k - 1 - p = k - 2`.
+    fn equivalent(&self) -> Result<Conv1dGemm> {
+        let rev: Vec<u32> = (0..self.k as u32).rev().collect();
+        let idx = Tensor::from_vec(rev, self.k, self.weight.device())?;
+        let w = self
+            .weight
+            .transpose(0, 1)?
+            .contiguous()?
+            .index_select(&idx, 2)?;
+        Ok(Conv1dGemm::from_parts(w, self.bias.clone(), 1, self.k - 2))
     }
 
     /// `(B, C_in, T)` -> `(B, C_out, 2T)`.
@@ -285,16 +303,18 @@ impl Upsample {
         let z = Tensor::cat(&[&x.unsqueeze(3)?, &x.zeros_like()?.unsqueeze(3)?], 3)?
             .reshape((b, c, 2 * t))?
             .narrow(2, 0, 2 * t - 1)?;
-        // Flip the kernel and swap in/out channels: W'[o, i, j] = W[i, o, k - 1 - j].
-        let rev: Vec<u32> = (0..self.k as u32).rev().collect();
-        let idx = Tensor::from_vec(rev, self.k, x.device())?;
-        let w = self
-            .weight
-            .transpose(0, 1)?
-            .contiguous()?
-            .index_select(&idx, 2)?;
-        // Padding k - 1 - p = 2 on both sides gives length 2T.
-        let conv = Conv1dGemm::from_parts(w, self.bias.clone(), 1, self.k - 2);
+        // Constant weights never change (trained ones are variables): build the equivalent
+        // convolution once.
+        if self.weight.track_op() || self.bias.track_op() {
+            return self.equivalent()?.forward(&z, products);
+        }
+        let conv = match self.constant.get() {
+            Some(conv) => conv,
+            None => {
+                let conv = self.equivalent()?;
+                self.constant.get_or_init(|| conv)
+            }
+        };
         conv.forward(&z, products)
     }
 }

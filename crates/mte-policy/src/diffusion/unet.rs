@@ -218,13 +218,9 @@ impl ResidualBlock {
     }
 
     /// `x`: `(B, C_in, T)`, `cond`: `(B, cond_dim)` -> `(B, C_out, T)`.
-    pub fn forward(&self, x: &Tensor, cond: &Tensor, products: Products) -> Result<Tensor> {
+    pub fn forward(&self, x: &Tensor, cond: &BlockCond, products: Products) -> Result<Tensor> {
         let out = self.conv1.forward(x, products)?;
-        let emb = self
-            .cond_encoder
-            // Every block reads `cond`: candle's composition keeps the order in which its
-            // gradient is summed (`kernels::mish` is for single-reader inputs).
-            .forward(&candle_nn::ops::mish(cond)?, products)?;
+        let emb = self.cond_encoder.forward(&cond.activated()?, products)?;
         // One pass (`kernels::film`): scale then bias, or bias only.
         let out = crate::kernels::film(&out, &emb, self.film_scale)?;
         let out = self.conv2.forward(&out, products)?;
@@ -233,6 +229,40 @@ impl ResidualBlock {
             None => x.clone(),
         };
         out + res
+    }
+}
+
+/// What every residual block reads: `mish(cond)`, `cond (B, cond_dim)`.
+///
+/// Computed once when no gradient flows to `cond` (evaluation). When one does (training,
+/// attacks), each block applies candle's Mish to `cond` itself, as the composed path always
+/// did: one shared node would sum the blocks' gradients before Mish's derivative, in another
+/// order and so to other bits (`kernels::mish` is for single-reader inputs for the same
+/// reason). The values are the same bits either way.
+#[derive(Clone, Debug)]
+pub enum BlockCond {
+    /// `mish(cond)`, shared by every block.
+    Once(Tensor),
+    /// `cond`, activated by each block.
+    PerBlock(Tensor),
+}
+
+impl BlockCond {
+    /// The condition for `cond`, activated once unless a gradient flows to it.
+    pub fn new(cond: Tensor) -> Result<Self> {
+        Ok(if cond.track_op() {
+            BlockCond::PerBlock(cond)
+        } else {
+            BlockCond::Once(candle_nn::ops::mish(&cond)?)
+        })
+    }
+
+    /// `mish(cond)` for one block.
+    fn activated(&self) -> Result<Tensor> {
+        match self {
+            BlockCond::Once(a) => Ok(a.clone()),
+            BlockCond::PerBlock(c) => candle_nn::ops::mish(c),
+        }
     }
 }
 
@@ -450,7 +480,7 @@ impl ConditionalUnet1d {
         let emb = self
             .step_encoder_with(timesteps, x.device(), products)?
             .to_dtype(x.dtype())?;
-        let cond = Tensor::cat(&[&emb, global_cond], D::Minus1)?;
+        let cond = BlockCond::new(Tensor::cat(&[&emb, global_cond], D::Minus1)?)?;
         let mut h = x.transpose(1, 2)?.contiguous()?;
         let mut skips = Vec::with_capacity(self.down.len());
         for d in &self.down {
@@ -511,6 +541,39 @@ mod tests {
             .to_scalar()
             .expect("s");
         assert!(d < 1e-5, "{d}");
+    }
+
+    /// A U-Net with constant weights (a loaded checkpoint: the condition activated once, the
+    /// one-node convolutions) gives the bits of the same weights as variables (the condition
+    /// activated per block, the composed convolutions), at batch 3.
+    #[test]
+    fn constant_weights_give_the_variables_bits() -> Result<()> {
+        use crate::diffusion::config::ObsKind;
+        let dev = Device::Cpu;
+        let c = DiffusionConfig::cpu(ObsKind::Keypoints);
+        let vm = candle_nn::VarMap::new();
+        let vb = crate::init::seeded_var_builder(&vm, 11, DType::F32, &dev);
+        let tracked = ConditionalUnet1d::new(&c, 6, vb)?;
+        let constants: std::collections::HashMap<String, Tensor> = vm
+            .data()
+            .lock()
+            .map_err(|_| candle_core::Error::Msg("var map lock".into()))?
+            .iter()
+            .map(|(k, v)| (k.clone(), v.as_tensor().detach()))
+            .collect();
+        let constant =
+            ConditionalUnet1d::new(&c, 6, VarBuilder::from_tensors(constants, DType::F32, &dev))?;
+        let rand = |shape: &[usize], seed: u64| {
+            crate::kernels::test_util::rand(shape, seed).to_dtype(DType::F32)
+        };
+        let x = rand(&[3, c.horizon, 2], 1)?;
+        let cond = rand(&[3, 6], 2)?;
+        let steps = [3, 50, 99];
+        let yt = tracked.forward(&x, &steps, &cond)?;
+        let yc = constant.forward(&x, &steps, &cond)?;
+        use crate::kernels::test_util::bits;
+        assert_eq!(bits(&yc), bits(&yt));
+        Ok(())
     }
 
     /// The constant-weight convolution (`kernels::conv1d`, one node) gives the composed

@@ -127,7 +127,13 @@ fn mish_gradient<T: ActFloat>(x: T, g: T) -> T {
     "aarch64+neon"
 ))]
 fn mish_all<T: ActFloat>(x: &[T]) -> Vec<T> {
-    x.iter().map(|&v| mish_value(v)).collect()
+    // The loop is written out here, not in `collect` (a generic function compiled without
+    // this clone's target features, so 4-wide SSE).
+    let mut out = vec![T::ZERO; x.len()];
+    for (o, &v) in out.iter_mut().zip(x) {
+        *o = mish_value(v);
+    }
+    out
 }
 
 /// [`mish_gradient`] of every element.
@@ -137,10 +143,12 @@ fn mish_all<T: ActFloat>(x: &[T]) -> Vec<T> {
     "aarch64+neon"
 ))]
 fn mish_gradient_all<T: ActFloat>(x: &[T], g: &[T]) -> Vec<T> {
-    x.iter()
-        .zip(g)
-        .map(|(&v, &g)| mish_gradient(v, g))
-        .collect()
+    // Written out for the clone's target features, as in `mish_all`.
+    let mut out = vec![T::ZERO; x.len()];
+    for ((o, &v), &g) in out.iter_mut().zip(x).zip(g) {
+        *o = mish_gradient(v, g);
+    }
+    out
 }
 
 /// Mish as one node; its backward pass recomputes the exponential from the input.

@@ -39,45 +39,50 @@ impl Geom1 {
 /// `(B, C, T)` → the columns `(B, C k, T_out)` packed straight into
 /// `kernels::product`'s vector panels: lane `r` of panel `p` is output position `g = 8 p + r`
 /// of the batch (`g = b T_out + t`), depth `c k + j` reads input `t · stride + j - pad` of
-/// channel `c` (zero outside), so no im2col copy is made.
+/// channel `c` (zero outside), so no im2col copy is made. The input is first copied with its
+/// zero padding, so every tap is a plain read; lanes past the batch's last position stay zero.
 fn column_panels<T: Copy + Default>(x: &[T], b: usize, g: Geom1) -> Vec<T> {
     const LANES: usize = super::product::LANES;
-    let (to, ck) = (g.t_out(), g.c * g.k);
+    let (to, ck, tp) = (g.t_out(), g.c * g.k, g.t + 2 * g.pad);
+    let padded = zero_padded(x, b * g.c, g, tp);
     let count = b * to;
     let mut out = vec![T::default(); count.div_ceil(LANES) * ck * LANES];
     for (p, panel) in out.chunks_mut(ck * LANES).enumerate() {
         let g0 = p * LANES;
         let lanes = (count - g0).min(LANES);
         let (rows, _) = panel.as_chunks_mut::<LANES>();
-        let (b0, t0) = (g0 / to, g0 % to);
-        // Each lane's sample offset and first input position.
-        let lane: [(usize, usize); LANES] = std::array::from_fn(|r| {
+        // Each lane's first padded input (channel 0, tap 0).
+        let lane: [usize; LANES] = std::array::from_fn(|r| {
             let gl = g0 + r.min(lanes - 1);
-            ((gl / to) * g.c * g.t, (gl % to) * g.stride)
+            (gl / to) * g.c * tp + (gl % to) * g.stride
         });
         // Eight positions of one sample at stride 1: a tap's eight inputs are adjacent.
-        let one_run = g.stride == 1 && lanes == LANES && t0 + LANES <= to;
-        for c in 0..g.c {
-            for j in 0..g.k {
-                let dst = &mut rows[c * g.k + j];
-                let first = t0 + j;
-                if one_run && first >= g.pad && first - g.pad + LANES <= g.t {
-                    let xs = &x[(b0 * g.c + c) * g.t + first - g.pad..];
-                    if let Some(src) = xs.first_chunk::<LANES>() {
+        let one_run = g.stride == 1 && lanes == LANES && lane[LANES - 1] == lane[0] + LANES - 1;
+        for (c, taps) in rows.chunks_exact_mut(g.k).enumerate() {
+            for (j, dst) in taps.iter_mut().enumerate() {
+                let at = c * tp + j;
+                if one_run {
+                    if let Some(src) = padded[lane[0] + at..].first_chunk::<LANES>() {
                         *dst = *src;
                     }
-                    continue;
-                }
-                for (d, &(base, start)) in dst.iter_mut().zip(&lane).take(lanes) {
-                    let pos = start + j;
-                    if pos >= g.pad && pos - g.pad < g.t {
-                        *d = x[base + c * g.t + pos - g.pad];
+                } else {
+                    for (d, &base) in dst.iter_mut().zip(&lane).take(lanes) {
+                        *d = padded[base + at];
                     }
                 }
             }
         }
     }
     out
+}
+
+/// The `rows` rows of `T` values of `x` with `pad` zeros on both sides (rows of `tp`).
+fn zero_padded<T: Copy + Default>(x: &[T], rows: usize, g: Geom1, tp: usize) -> Vec<T> {
+    let mut padded = vec![T::default(); rows * tp];
+    for (dst, src) in padded.chunks_exact_mut(tp).zip(x.chunks_exact(g.t)) {
+        dst[g.pad..g.pad + g.t].copy_from_slice(src);
+    }
+    padded
 }
 
 /// Columns' gradient `(B, C k, T_out)` → the input's `(B, C, T)`: each element sums its taps

@@ -115,13 +115,20 @@ fn centred<T: NormFloat>(x: &[T], d: Dims) -> Result<(Vec<T>, Vec<T>)> {
 }
 
 fn forward<T: NormFloat>(x: &[T], gamma: &[T], beta: &[T], d: Dims) -> Result<Vec<T>> {
-    let (xc, sd) = centred(x, d)?;
-    let mut y = Vec::with_capacity(x.len());
-    for (r, (row, &s)) in xc.chunks_exact(d.n).zip(&sd).enumerate() {
-        y.extend(row.iter().enumerate().map(|(j, &v)| {
-            let ch = d.channel(r, j);
-            (v / s) * gamma[ch] + beta[ch]
-        }));
+    // The centred values become the output in place, one channel's run at a time (a row
+    // holds `C / G` channels of `L` values each; see [`Dims::channel`]).
+    let (mut y, sd) = centred(x, d)?;
+    let per_group = d.c / d.groups;
+    for (r, (row, &s)) in y.chunks_exact_mut(d.n).zip(&sd).enumerate() {
+        let first = (r % d.groups) * per_group;
+        let affine = gamma[first..first + per_group]
+            .iter()
+            .zip(&beta[first..first + per_group]);
+        for (run, (&g, &b)) in row.chunks_exact_mut(d.per_channel).zip(affine) {
+            for v in run {
+                *v = (*v / s) * g + b;
+            }
+        }
     }
     Ok(y)
 }

@@ -579,8 +579,9 @@ mod tests {
     /// The constant-weight convolution (`kernels::conv1d`, one node) gives the composed
     /// path's output and input gradient bit for bit in f32, for the U-Net's geometries: its
     /// blocks (k = 5, pad 2), the downsample (k = 3, stride 2, pad 1), the residual 1x1, the
-    /// upsample's convolution (k = 4, pad 2) and an odd length. The composed path is taken by
-    /// making the same weights variables.
+    /// upsample's convolution (k = 4, pad 2), an odd length, and outputs of 16, 8, 4 and 2
+    /// positions (at batch 3 the kernel's panels cross samples and end in a tail). The
+    /// composed path is taken by making the same weights variables.
     #[test]
     fn constant_weight_conv1d_is_the_composed_path_bit_for_bit() -> Result<()> {
         use candle_core::Var;
@@ -593,6 +594,8 @@ mod tests {
             (8, 4, 8, 1, 1, 0),
             (4, 4, 15, 4, 1, 2),
             (2, 3, 7, 3, 2, 1),
+            (4, 6, 4, 5, 1, 2),
+            (3, 5, 2, 3, 1, 1),
         ]
         .iter()
         .enumerate()

@@ -5,7 +5,8 @@
 //! `(B, C k, T_out)`, multiplies each sample by the weight `(C_out, C k)` and adds the bias:
 //! about `k + 6` graph nodes, each of which costs the backward pass a zero-filled buffer and
 //! an addition. Here the forward builds the same columns and calls the same per-sample
-//! product, then adds the bias as `broadcast_add` does; the backward multiplies by the
+//! product, which adds the bias as it stores each element (one addition, as `broadcast_add`
+//! does); the backward multiplies by the
 //! transposed weight (the product's own backward) and sums each input element's taps in the
 //! order candle's backward pass adds the narrows' gradients (last tap first), so the input's
 //! gradient is the same bits (checked against the composed path in the tests).
@@ -147,14 +148,11 @@ impl ConstantWeightConv1d {
                 panels_len(co, dims.k)
             );
         }
-        super::product::left_products_packed(Shared::Panels(packed), &panels, dims, b, &mut y);
-        for sample in y.chunks_mut(co * to) {
-            for (row, &bv) in sample.chunks_mut(to).zip(bias) {
-                for v in row {
-                    *v += bv;
-                }
-            }
+        if bias.len() != co {
+            candle_core::bail!("conv1d: a bias of {} values, expected {co}", bias.len());
         }
+        let packed = Shared::Panels(packed);
+        super::product::left_products_packed(packed, &panels, dims, b, (&mut y, bias));
         Ok(T::to_cpu_storage_owned(y))
     }
 }

@@ -38,7 +38,9 @@ pub(super) const WIDTH: usize = 12;
 const BLOCK_BYTES: usize = 192 * 1024;
 
 /// A float the product is defined for: `mul_add` is the fused multiply-add.
-pub(super) trait Element: Copy + Send + Sync + 'static {
+pub(super) trait Element:
+    Copy + Send + Sync + 'static + std::ops::Add<Output = Self>
+{
     const ZERO: Self;
     fn mul_add(self, b: Self, c: Self) -> Self;
 }
@@ -115,18 +117,19 @@ pub(super) fn products<T: Element>(
     out: &mut [T],
 ) {
     let vector = VectorSide { side, x, d, batch };
-    with_panels(vector, w, &vector.panels(), out);
+    with_panels(vector, w, &vector.panels(), (out, None));
 }
 
 /// [`products`] on the left, with the batch's vector panels already packed (`panels`, in
 /// [`VectorSide::panels`]' layout: `batch · n` lines, sample-major), e.g. straight from a
-/// convolution's input without an im2col copy.
+/// convolution's input without an im2col copy, plus `bias[i]` on every element of row `i`
+/// (`out = product + bias`, one rounding, as a separate addition gives).
 pub(super) fn left_products_packed<T: Element>(
     w: Shared<'_, T>,
     panels: &[T],
     d: Dims,
     batch: usize,
-    out: &mut [T],
+    (out, bias): (&mut [T], &[T]),
 ) {
     let vector = VectorSide {
         side: Side::Left,
@@ -134,7 +137,7 @@ pub(super) fn left_products_packed<T: Element>(
         d,
         batch,
     };
-    with_panels(vector, w, panels, out);
+    with_panels(vector, w, panels, (out, Some(bias)));
 }
 
 /// The products of the batch's packed `panels` with `w`.
@@ -142,7 +145,7 @@ fn with_panels<T: Element>(
     vector: VectorSide<'_, T>,
     w: Shared<'_, T>,
     panels: &[T],
-    out: &mut [T],
+    (out, bias): (&mut [T], Option<&[T]>),
 ) {
     let (side, d, batch) = (vector.side, vector.d, vector.batch);
     let out = &mut out[..batch * d.m * d.n];
@@ -184,7 +187,7 @@ fn with_panels<T: Element>(
             scalars,
             (d.k, count),
             |p, c0, tile: &[[T; LANES]]| {
-                vector.store(out, (first + p) * LANES, c0, tile);
+                vector.store(out, (first + p) * LANES, (c0, bias), tile);
             },
         );
     }
@@ -259,13 +262,24 @@ impl<T: Element> VectorSide<'_, T> {
         out
     }
 
-    /// Writes a tile: lanes from vector line `g0`, columns from scalar line `c0`.
-    fn store(&self, out: &mut [T], g0: usize, c0: usize, tile: &[[T; LANES]]) {
+    /// Writes a tile: lanes from vector line `g0`, columns from scalar line `c0`, each plus
+    /// its scalar line's `bias`, if any.
+    fn store(
+        &self,
+        out: &mut [T],
+        g0: usize,
+        (c0, bias): (usize, Option<&[T]>),
+        tile: &[[T; LANES]],
+    ) {
         let lanes = (self.count() - g0).min(LANES);
         for r in 0..lanes {
             let (base, step) = self.output(g0 + r);
             for (c, values) in tile.iter().enumerate() {
-                out[base + (c0 + c) * step] = values[r];
+                let v = values[r];
+                out[base + (c0 + c) * step] = match bias {
+                    Some(b) => v + b[c0 + c],
+                    None => v,
+                };
             }
         }
     }

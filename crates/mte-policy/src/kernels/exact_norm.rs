@@ -42,8 +42,34 @@ impl NormFloat for f64 {
     }
 }
 
+/// The sums of the `rows` rows of `n` values as candle's reduction (`sum_keepdim` over the
+/// last, contiguous dimension) computes them in a build without its SIMD sums (none of
+/// `avx2`, `neon`, `simd128` enabled at compile time, as in a default x86-64 build): each row
+/// in order from zero. Computed here, without copying the values into a tensor; the test
+/// against candle_nn's layer checks it is still candle's rule.
+#[cfg(not(any(
+    target_feature = "avx2",
+    target_feature = "neon",
+    target_feature = "simd128"
+)))]
+fn row_sums<T: NormFloat>(v: &[T], rows: usize, n: usize) -> Result<Vec<T>> {
+    if n == 0 {
+        return Ok(vec![T::zero(); rows]);
+    }
+    Ok(v.chunks_exact(n)
+        .take(rows)
+        .map(|row| row.iter().fold(T::zero(), |a, &b| a + b))
+        .collect())
+}
+
 /// The sums of the `rows` rows of `n` values, by candle's reduction (`sum_keepdim` over the
-/// last, contiguous dimension), as the composition computes them.
+/// last, contiguous dimension), as the composition computes them (candle's SIMD sums, in
+/// this build).
+#[cfg(any(
+    target_feature = "avx2",
+    target_feature = "neon",
+    target_feature = "simd128"
+))]
 fn row_sums<T: NormFloat>(v: &[T], rows: usize, n: usize) -> Result<Vec<T>> {
     Tensor::from_slice(v, (rows, n), &Device::Cpu)?
         .sum_keepdim(1)?

@@ -264,6 +264,7 @@ impl<T: Element> VectorSide<'_, T> {
 
     /// Writes a tile: lanes from vector line `g0`, columns from scalar line `c0`, each plus
     /// its scalar line's `bias`, if any.
+    #[inline(always)]
     fn store(
         &self,
         out: &mut [T],
@@ -272,6 +273,26 @@ impl<T: Element> VectorSide<'_, T> {
         tile: &[[T; LANES]],
     ) {
         let lanes = (self.count() - g0).min(LANES);
+        let (base, step) = self.output(g0);
+        // Eight neighbouring columns of one sample (left): each scalar line's eight outputs
+        // are adjacent.
+        if step > 1 && lanes == LANES && self.output(g0 + LANES - 1).0 == base + LANES - 1 {
+            for (c, values) in tile.iter().enumerate() {
+                let Some(dst) = out[base + (c0 + c) * step..].first_chunk_mut::<LANES>() else {
+                    return;
+                };
+                match bias {
+                    Some(b) => {
+                        let bv = b[c0 + c];
+                        for (d, &v) in dst.iter_mut().zip(values) {
+                            *d = v + bv;
+                        }
+                    }
+                    None => *dst = *values,
+                }
+            }
+            return;
+        }
         for r in 0..lanes {
             let (base, step) = self.output(g0 + r);
             for (c, values) in tile.iter().enumerate() {

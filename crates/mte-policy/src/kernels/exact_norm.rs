@@ -16,7 +16,7 @@
 //! encoder uses that one, the U-Net this one, so that their checkpoints' outputs are what they
 //! were.
 
-use candle_core::{CpuStorage, CustomOp3, Device, Layout, Result, Shape, Tensor, WithDType};
+use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Tensor, WithDType};
 
 /// The scalar operations the replay needs.
 trait NormFloat:
@@ -71,7 +71,7 @@ fn row_sums<T: NormFloat>(v: &[T], rows: usize, n: usize) -> Result<Vec<T>> {
     target_feature = "simd128"
 ))]
 fn row_sums<T: NormFloat>(v: &[T], rows: usize, n: usize) -> Result<Vec<T>> {
-    Tensor::from_slice(v, (rows, n), &Device::Cpu)?
+    Tensor::from_slice(v, (rows, n), &candle_core::Device::Cpu)?
         .sum_keepdim(1)?
         .flatten_all()?
         .to_vec1::<T>()

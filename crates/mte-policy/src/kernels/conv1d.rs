@@ -33,7 +33,12 @@ struct Geom1 {
 
 impl Geom1 {
     fn t_out(&self) -> usize {
-        (self.t + 2 * self.pad - self.k) / self.stride + 1
+        (self.t_padded() - self.k) / self.stride + 1
+    }
+
+    /// The input's length with its zero padding on both sides.
+    fn t_padded(&self) -> usize {
+        self.t + 2 * self.pad
     }
 }
 
@@ -44,8 +49,8 @@ impl Geom1 {
 /// zero padding, so every tap is a plain read; lanes past the batch's last position stay zero.
 fn column_panels<T: Copy + Default>(x: &[T], b: usize, g: Geom1) -> Vec<T> {
     const LANES: usize = super::product::LANES;
-    let (to, ck, tp) = (g.t_out(), g.c * g.k, g.t + 2 * g.pad);
-    let padded = zero_padded(x, b * g.c, g, tp);
+    let (to, ck, tp) = (g.t_out(), g.c * g.k, g.t_padded());
+    let padded = zero_padded(x, b * g.c, g);
     let count = b * to;
     let mut out = vec![T::default(); count.div_ceil(LANES) * ck * LANES];
     for (p, panel) in out.chunks_mut(ck * LANES).enumerate() {
@@ -77,8 +82,10 @@ fn column_panels<T: Copy + Default>(x: &[T], b: usize, g: Geom1) -> Vec<T> {
     out
 }
 
-/// The `rows` rows of `T` values of `x` with `pad` zeros on both sides (rows of `tp`).
-fn zero_padded<T: Copy + Default>(x: &[T], rows: usize, g: Geom1, tp: usize) -> Vec<T> {
+/// The `rows` rows of `T` values of `x` with `pad` zeros on both sides (rows of
+/// [`Geom1::t_padded`]).
+fn zero_padded<T: Copy + Default>(x: &[T], rows: usize, g: Geom1) -> Vec<T> {
+    let tp = g.t_padded();
     let mut padded = vec![T::default(); rows * tp];
     for (dst, src) in padded.chunks_exact_mut(tp).zip(x.chunks_exact(g.t)) {
         dst[g.pad..g.pad + g.t].copy_from_slice(src);
@@ -147,9 +154,6 @@ impl ConstantWeightConv1d {
                 packed.len(),
                 panels_len(co, dims.k)
             );
-        }
-        if bias.len() != co {
-            candle_core::bail!("conv1d: a bias of {} values, expected {co}", bias.len());
         }
         let packed = Shared::Panels(packed);
         super::product::left_products_packed(packed, &panels, dims, b, (&mut y, bias));

@@ -281,14 +281,8 @@ impl<T: Element> VectorSide<'_, T> {
                 let Some(dst) = out[base + (c0 + c) * step..].first_chunk_mut::<LANES>() else {
                     return;
                 };
-                match bias {
-                    Some(b) => {
-                        let bv = b[c0 + c];
-                        for (d, &v) in dst.iter_mut().zip(values) {
-                            *d = v + bv;
-                        }
-                    }
-                    None => *dst = *values,
+                for (d, &v) in dst.iter_mut().zip(values) {
+                    *d = biased(v, bias, c0 + c);
                 }
             }
             return;
@@ -296,13 +290,19 @@ impl<T: Element> VectorSide<'_, T> {
         for r in 0..lanes {
             let (base, step) = self.output(g0 + r);
             for (c, values) in tile.iter().enumerate() {
-                let v = values[r];
-                out[base + (c0 + c) * step] = match bias {
-                    Some(b) => v + b[c0 + c],
-                    None => v,
-                };
+                out[base + (c0 + c) * step] = biased(values[r], bias, c0 + c);
             }
         }
+    }
+}
+
+/// An output element `v` of scalar line `line` as stored: plus the line's bias if there is
+/// one (one addition), else `v` itself (adding zero would turn -0 into +0).
+#[inline(always)]
+fn biased<T: Element>(v: T, bias: Option<&[T]>, line: usize) -> T {
+    match bias {
+        Some(b) => v + b[line],
+        None => v,
     }
 }
 

@@ -123,7 +123,10 @@ fn im2col<T: Copy + Default + Send + Sync>(x: &[T], b: usize, g: Geom) -> Vec<T>
 }
 
 /// `(B, C, H, W)` → `(B, C k_h k_w, L)`: [`im2col`]'s columns transposed, each column's
-/// taps along the output positions (the layout the constant-weight convolution multiplies).
+/// taps along the output positions (the layout the constant-weight convolution multiplies;
+/// it packs them straight from the input, [`column_panels`], and the tests check the two
+/// against each other).
+#[cfg(test)]
 fn im2col_t<T: Copy + Default + Send + Sync>(x: &[T], b: usize, g: Geom) -> Vec<T> {
     let (ho, wo) = g.out_hw();
     let (l, ckk, img, kk) = (ho * wo, g.ckk(), g.c * g.h * g.w, g.kh * g.kw);
@@ -155,6 +158,74 @@ fn im2col_t<T: Copy + Default + Send + Sync>(x: &[T], b: usize, g: Geom) -> Vec<
             }
         });
     out
+}
+
+/// `(B, C, H, W)` → the transposed columns `(B, C k_h k_w, L)` packed straight into
+/// `kernels::product`'s vector panels, with no im2col copy: lane `r` of panel `p` is output
+/// position `g = 8 p + r` of the batch (`g = b L + oy W_out + ox`), depth `(c, k_y, k_x)`
+/// reads input `(c, oy · s + k_y - pad, ox · s + k_x - pad)`, zero outside. The input is
+/// first copied with its zero padding, so every tap is a plain read; at stride 1, eight
+/// positions in one output row read eight adjacent inputs. Lanes past the batch's last
+/// position stay zero.
+fn column_panels<T: Copy + Default + Send + Sync>(x: &[T], b: usize, g: Geom) -> Vec<T> {
+    const LANES: usize = super::product::LANES;
+    let (ho, wo) = g.out_hw();
+    let (l, ckk) = (ho * wo, g.ckk());
+    let (hp, wp) = (g.h + 2 * g.pad, g.w + 2 * g.pad);
+    let padded = zero_padded(x, b * g.c, g);
+    let count = b * l;
+    let mut out = vec![T::default(); count.div_ceil(LANES) * ckk * LANES];
+    out.par_chunks_mut(ckk * LANES)
+        .enumerate()
+        .for_each(|(p, panel)| {
+            let g0 = p * LANES;
+            let lanes = (count - g0).min(LANES);
+            // Each lane's first padded input (channel 0, tap (0, 0)).
+            let lane: [usize; LANES] = std::array::from_fn(|r| {
+                let gl = g0 + r.min(lanes - 1);
+                let (img, pos) = (gl / l, gl % l);
+                img * g.c * hp * wp + (pos / wo) * g.stride * wp + (pos % wo) * g.stride
+            });
+            let one_run = g.stride == 1 && lanes == LANES && lane[LANES - 1] == lane[0] + LANES - 1;
+            let (rows, _) = panel.as_chunks_mut::<LANES>();
+            // Depth (c, k_y, k_x) in order: one row of `k_x` taps per input row read.
+            for (r, dst) in rows.chunks_exact_mut(g.kw).enumerate() {
+                let at = (r / g.kh) * hp * wp + (r % g.kh) * wp;
+                if one_run {
+                    let src = &padded[lane[0] + at..][..g.kw + LANES - 1];
+                    for (kx, d) in dst.iter_mut().enumerate() {
+                        if let Some(s) = src[kx..].first_chunk::<LANES>() {
+                            *d = *s;
+                        }
+                    }
+                } else {
+                    for (kx, d) in dst.iter_mut().enumerate() {
+                        for (v, &base) in d.iter_mut().zip(&lane).take(lanes) {
+                            *v = padded[base + at + kx];
+                        }
+                    }
+                }
+            }
+        });
+    out
+}
+
+/// The `planes` planes `(H, W)` of `x` with `pad` zeros on every side.
+fn zero_padded<T: Copy + Default + Send + Sync>(x: &[T], planes: usize, g: Geom) -> Vec<T> {
+    let (hp, wp) = (g.h + 2 * g.pad, g.w + 2 * g.pad);
+    let mut padded = vec![T::default(); planes * hp * wp];
+    for (dst, src) in padded
+        .chunks_exact_mut(hp * wp)
+        .zip(x.chunks_exact(g.h * g.w))
+    {
+        for (drow, srow) in dst[g.pad * wp..]
+            .chunks_exact_mut(wp)
+            .zip(src.chunks_exact(g.w))
+        {
+            drow[g.pad..g.pad + g.w].copy_from_slice(srow);
+        }
+    }
+    padded
 }
 
 /// `(B, L, C k_h k_w)` → `(B, C, H, W)`, summing overlapping taps (im2col's adjoint).
@@ -211,9 +282,11 @@ fn col2im_image<T: Copy + std::ops::AddAssign>(t: &[T], dst: &mut [T], g: Geom) 
                         for (a, &v) in d.iter_mut().zip(&trow[ox_lo..ox_hi]) {
                             *a += v;
                         }
-                    } else {
-                        for (ox, &v) in trow.iter().enumerate().take(ox_hi).skip(ox_lo) {
-                            drow[ox * g.stride + kx - g.pad] += v;
+                    } else if ox_lo < ox_hi {
+                        // Every `stride`-th input from the first tap inside.
+                        let d = drow[ox_lo * g.stride + kx - g.pad..].iter_mut();
+                        for (a, &v) in d.step_by(g.stride).zip(&trow[ox_lo..ox_hi]) {
+                            *a += v;
                         }
                     }
                 }
@@ -306,33 +379,38 @@ impl CustomOp1 for Col2Im {
 struct ConstantWeightConv(Geom);
 
 impl ConstantWeightConv {
-    /// The stored weight `(C_out, C k k)` times each image's transposed columns `(C k k,
-    /// L)`, as [`super::batch`]'s per-sample product computes it: the output comes out as
-    /// `(C_out, L)`, the convolution's own layout.
-    const PRODUCT: super::batch::PerSampleProduct = super::batch::PerSampleProduct {
-        side: super::batch::Side::Left,
-        transpose: false,
-    };
-
+    /// The stored weight `(C_out, C k k)` times each image's transposed columns `(C k k, L)`,
+    /// packed straight from the input ([`column_panels`]) and multiplied as
+    /// [`super::batch`]'s per-sample product multiplies them (the same element definition):
+    /// the output comes out as `(C_out, L)`, the convolution's own layout.
     fn forward<T>(&self, x: &[T], b: usize, w: &CpuStorage, lw: &Layout) -> Result<CpuStorage>
     where
         T: candle_core::WithDType + Default + super::product::Element,
     {
         let g = self.0;
         let (ho, wo) = g.out_hw();
-        let (l, ckk) = (ho * wo, g.ckk());
-        let co = lw.dims()[0];
-        let Some((w0, _)) = lw.contiguous_offsets() else {
-            candle_core::bail!("conv2d: the weight must be contiguous");
+        let dims = super::product::Dims {
+            m: lw.dims()[0],
+            k: g.ckk(),
+            n: ho * wo,
         };
-        let cols = T::to_cpu_storage_owned(im2col_t(x, b, g));
-        let (y, _) = Self::PRODUCT.forward::<T>(
-            &cols,
-            &Layout::contiguous((b, ckk, l)),
-            w,
-            &Layout::contiguous_with_offset((co, ckk), w0),
-        )?;
-        Ok(y)
+        let w = contiguous(w.as_slice::<T>()?, lw)?;
+        if w.len() != dims.m * dims.k {
+            candle_core::bail!(
+                "conv2d: a weight of {} values, expected {} x {}",
+                w.len(),
+                dims.m,
+                dims.k
+            );
+        }
+        let panels = column_panels(x, b, g);
+        let mut y = vec![T::default(); b * dims.m * dims.n];
+        let w = super::product::Shared::Plain {
+            data: w,
+            transposed: false,
+        };
+        super::product::left_products_packed(w, &panels, dims, b, (&mut y, None));
+        Ok(T::to_cpu_storage_owned(y))
     }
 }
 
@@ -629,6 +707,19 @@ mod tests {
                     .collect()
             };
             assert_eq!(im2col_t(&x, b, g), per_image(&want), "im2col_t, case {i}");
+            // The same columns packed for the product: lane r of panel p is the batch's
+            // output position 8 p + r, zero past the last.
+            let t = per_image(&want);
+            let lanes = crate::kernels::product::LANES;
+            let mut panels = vec![0f32; (b * l).div_ceil(lanes) * ckk * lanes];
+            for gl in 0..b * l {
+                let (bi, pos) = (gl / l, gl % l);
+                for kk in 0..ckk {
+                    panels[((gl / lanes) * ckk + kk) * lanes + gl % lanes] =
+                        t[bi * ckk * l + kk * l + pos];
+                }
+            }
+            assert_eq!(column_panels(&x, b, g), panels, "column panels, case {i}");
             let cols: Vec<f32> = rand(&[b * l * ckk], 50 + i as u64)
                 .to_vec1::<f64>()
                 .expect("cols")

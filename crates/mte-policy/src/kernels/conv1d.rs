@@ -156,7 +156,7 @@ impl ConstantWeightConv1d {
             );
         }
         let packed = Shared::Panels(packed);
-        super::product::left_products_packed(packed, &panels, dims, b, (&mut y, bias));
+        super::product::left_products_packed(packed, &panels, dims, b, (&mut y, Some(bias)));
         Ok(T::to_cpu_storage_owned(y))
     }
 }

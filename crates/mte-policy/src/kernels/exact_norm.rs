@@ -80,7 +80,8 @@ fn row_sums<T: NormFloat>(v: &[T], rows: usize, n: usize) -> Result<Vec<T>> {
 /// The shape of one normalisation.
 #[derive(Clone, Copy, Debug)]
 struct Dims {
-    /// `B · G` rows of `n = (C / G) · L` values each.
+    /// `B · G` rows of `n = (C / G) · L` values each: element `j` of row `r` is channel
+    /// `(r mod G) · C / G + j / L`, so a row holds `C / G` channels' runs of `L` values.
     rows: usize,
     n: usize,
     groups: usize,
@@ -105,12 +106,6 @@ impl Dims {
             per_channel,
             eps,
         })
-    }
-
-    /// The channel of element `j` of row `r`.
-    #[inline]
-    fn channel(&self, r: usize, j: usize) -> usize {
-        (r % self.groups) * (self.c / self.groups) + j / self.per_channel
     }
 
     /// `1 / n` as candle's `tensor / n` scales (`affine(1 / n, 0)` in `T`).
@@ -141,8 +136,8 @@ fn centred<T: NormFloat>(x: &[T], d: Dims) -> Result<(Vec<T>, Vec<T>)> {
 }
 
 fn forward<T: NormFloat>(x: &[T], gamma: &[T], beta: &[T], d: Dims) -> Result<Vec<T>> {
-    // The centred values become the output in place, one channel's run at a time (a row
-    // holds `C / G` channels of `L` values each; see [`Dims::channel`]).
+    // The centred values become the output in place, one channel's run at a time (see
+    // [`Dims::rows`]).
     let (mut y, sd) = centred(x, d)?;
     let per_group = d.c / d.groups;
     for (r, (row, &s)) in y.chunks_exact_mut(d.n).zip(&sd).enumerate() {
@@ -166,22 +161,26 @@ fn backward<T: NormFloat>(x: &[T], gamma: &[T], g: &[T], d: Dims) -> Result<Vec<
     let half = T::from_f64(0.5);
     let inv_n = d.inv_n::<T>();
     let (xc, sd) = centred(x, d)?;
-    // Scale and shift, reshape: the normalised value's gradient.
-    let gxn: Vec<T> = g
-        .iter()
-        .enumerate()
-        .map(|(i, &gi)| {
-            let ch = d.channel(i / d.n, i % d.n);
-            zero + (zero + (zero + gi) * gamma[ch])
-        })
-        .collect();
-    // Division by the broadcast standard deviation: both sides.
+    let per_group = d.c / d.groups;
+    // Scale and shift, reshape: the normalised value's gradient; then the division by the
+    // broadcast standard deviation, both sides. One channel's run at a time (see
+    // [`Dims::rows`]), so the loops carry no index arithmetic.
     let mut from_div = Vec::with_capacity(x.len());
     let mut to_sd = Vec::with_capacity(x.len());
     for (r, &s) in sd.iter().enumerate() {
-        for i in r * d.n..(r + 1) * d.n {
-            from_div.push(gxn[i] / s);
-            to_sd.push(zero - (gxn[i] * xc[i]) / (s * s));
+        let first = (r % d.groups) * per_group;
+        let runs = g[r * d.n..(r + 1) * d.n]
+            .chunks_exact(d.per_channel)
+            .zip(xc[r * d.n..(r + 1) * d.n].chunks_exact(d.per_channel));
+        for ((g_run, xc_run), &gamma) in runs.zip(&gamma[first..first + per_group]) {
+            let gxn = |gi: T| zero + (zero + (zero + gi) * gamma);
+            from_div.extend(g_run.iter().map(|&gi| gxn(gi) / s));
+            to_sd.extend(
+                g_run
+                    .iter()
+                    .zip(xc_run)
+                    .map(|(&gi, &c)| zero - (gxn(gi) * c) / (s * s)),
+            );
         }
     }
     // Broadcast (a row sum), sqrt, + eps, / n, the sum of squares: each row's gradient.
@@ -199,19 +198,18 @@ fn backward<T: NormFloat>(x: &[T], gamma: &[T], g: &[T], d: Dims) -> Result<Vec<
     // The square's contribution after the division's; then the subtraction's two sides.
     let mut xr = Vec::with_capacity(x.len());
     let mut to_mean = Vec::with_capacity(x.len());
-    for (r, &gs2) in s2_grad.iter().enumerate() {
+    let rows = from_div.chunks_exact(d.n).zip(xc.chunks_exact(d.n));
+    for ((fd, xcr), &gs2) in rows.zip(&s2_grad) {
         let gsq = zero + gs2;
-        for i in r * d.n..(r + 1) * d.n {
-            let gxc = (zero + from_div[i]) + ((xc[i] * gsq) * two + zero);
-            xr.push(zero + gxc);
-            to_mean.push(zero - gxc);
-        }
+        let gxc = |(&f, &c): (&T, &T)| (zero + f) + ((c * gsq) * two + zero);
+        xr.extend(fd.iter().zip(xcr).map(|p| zero + gxc(p)));
+        to_mean.extend(fd.iter().zip(xcr).map(|p| zero - gxc(p)));
     }
     // Broadcast of the mean (a row sum), / n, the row sum of the input: added last.
     let mean_grad = row_sums(&to_mean, d.rows, d.n)?;
-    for (r, &gm) in mean_grad.iter().enumerate() {
+    for (row, &gm) in xr.chunks_exact_mut(d.n).zip(&mean_grad) {
         let gs1 = zero + ((zero + gm) * inv_n + zero);
-        for v in &mut xr[r * d.n..(r + 1) * d.n] {
+        for v in row {
             *v += gs1;
         }
     }

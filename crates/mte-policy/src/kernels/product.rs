@@ -122,14 +122,14 @@ pub(super) fn products<T: Element>(
 
 /// [`products`] on the left, with the batch's vector panels already packed (`panels`, in
 /// [`VectorSide::panels`]' layout: `batch · n` lines, sample-major), e.g. straight from a
-/// convolution's input without an im2col copy, plus `bias[i]` on every element of row `i`
-/// (`out = product + bias`, one rounding, as a separate addition gives).
+/// convolution's input without an im2col copy, plus `bias[i]`, if any, on every element of
+/// row `i` (`out = product + bias`, one rounding, as a separate addition gives).
 pub(super) fn left_products_packed<T: Element>(
     w: Shared<'_, T>,
     panels: &[T],
     d: Dims,
     batch: usize,
-    (out, bias): (&mut [T], &[T]),
+    (out, bias): (&mut [T], Option<&[T]>),
 ) {
     let vector = VectorSide {
         side: Side::Left,
@@ -137,7 +137,7 @@ pub(super) fn left_products_packed<T: Element>(
         d,
         batch,
     };
-    with_panels(vector, w, panels, (out, Some(bias)));
+    with_panels(vector, w, panels, (out, bias));
 }
 
 /// The products of the batch's packed `panels` with `w`.

@@ -170,7 +170,11 @@ def main():
         missing, unexpected = net.load_state_dict(mine, strict=False)
         buffers = {name for name, _ in net.named_buffers()}
         assert not unexpected and set(missing) <= buffers, (missing, unexpected)
-        print(f"loaded {len(mine)} tensors of {args.checkpoint} (every parameter, same names and shapes)")
+        # Named relative to the repository (no machine's path in a committed output).
+        root = Path(__file__).resolve().parents[2]
+        shown = Path(args.checkpoint).resolve()
+        shown = shown.relative_to(root) if shown.is_relative_to(root) else shown.name
+        print(f"loaded {len(mine)} tensors of {shown} (every parameter, same names and shapes)")
     print(f"parameters: {sum(p.numel() for p in net.parameters()):,}")
     for p in net.parameters():
         p.requires_grad_(False)

@@ -65,7 +65,7 @@ fn row_sums<T: NormFloat>(v: &[T], rows: usize, n: usize) -> Result<Vec<T>> {
         let mut acc = [T::zero(); INTERLEAVE];
         for i in 0..n {
             for (j, a) in acc.iter_mut().enumerate().take(k) {
-                *a = *a + chunk[j * n + i];
+                *a += chunk[j * n + i];
             }
         }
         out.extend_from_slice(&acc[..k]);

@@ -53,24 +53,13 @@ impl NormFloat for f64 {
     target_feature = "simd128"
 )))]
 fn row_sums<T: NormFloat>(v: &[T], rows: usize, n: usize) -> Result<Vec<T>> {
-    /// Rows summed together: each row's chain of additions stays in order, but eight
-    /// chains interleave, so an addition's latency no longer bounds the loop.
-    const INTERLEAVE: usize = 8;
     if n == 0 {
         return Ok(vec![T::zero(); rows]);
     }
-    let mut out = Vec::with_capacity(rows);
-    for chunk in v[..rows * n].chunks(INTERLEAVE * n) {
-        let k = chunk.len() / n;
-        let mut acc = [T::zero(); INTERLEAVE];
-        for i in 0..n {
-            for (j, a) in acc.iter_mut().enumerate().take(k) {
-                *a += chunk[j * n + i];
-            }
-        }
-        out.extend_from_slice(&acc[..k]);
-    }
-    Ok(out)
+    Ok(v.chunks_exact(n)
+        .take(rows)
+        .map(|row| row.iter().fold(T::zero(), |a, &b| a + b))
+        .collect())
 }
 
 /// The sums of the `rows` rows of `n` values, by candle's reduction (`sum_keepdim` over the

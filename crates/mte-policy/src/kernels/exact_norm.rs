@@ -173,14 +173,11 @@ fn backward<T: NormFloat>(x: &[T], gamma: &[T], g: &[T], d: Dims) -> Result<Vec<
             .chunks_exact(d.per_channel)
             .zip(xc[r * d.n..(r + 1) * d.n].chunks_exact(d.per_channel));
         for ((g_run, xc_run), &gamma) in runs.zip(&gamma[first..first + per_group]) {
-            let gxn = |gi: T| zero + (zero + (zero + gi) * gamma);
-            from_div.extend(g_run.iter().map(|&gi| gxn(gi) / s));
-            to_sd.extend(
-                g_run
-                    .iter()
-                    .zip(xc_run)
-                    .map(|(&gi, &c)| zero - (gxn(gi) * c) / (s * s)),
-            );
+            for (&gi, &c) in g_run.iter().zip(xc_run) {
+                let gxn = zero + (zero + (zero + gi) * gamma);
+                from_div.push(gxn / s);
+                to_sd.push(zero - (gxn * c) / (s * s));
+            }
         }
     }
     // Broadcast (a row sum), sqrt, + eps, / n, the sum of squares: each row's gradient.
@@ -201,9 +198,11 @@ fn backward<T: NormFloat>(x: &[T], gamma: &[T], g: &[T], d: Dims) -> Result<Vec<
     let rows = from_div.chunks_exact(d.n).zip(xc.chunks_exact(d.n));
     for ((fd, xcr), &gs2) in rows.zip(&s2_grad) {
         let gsq = zero + gs2;
-        let gxc = |(&f, &c): (&T, &T)| (zero + f) + ((c * gsq) * two + zero);
-        xr.extend(fd.iter().zip(xcr).map(|p| zero + gxc(p)));
-        to_mean.extend(fd.iter().zip(xcr).map(|p| zero - gxc(p)));
+        for (&f, &c) in fd.iter().zip(xcr) {
+            let gxc = (zero + f) + ((c * gsq) * two + zero);
+            xr.push(zero + gxc);
+            to_mean.push(zero - gxc);
+        }
     }
     // Broadcast of the mean (a row sum), / n, the row sum of the input: added last.
     let mean_grad = row_sums(&to_mean, d.rows, d.n)?;

@@ -14,6 +14,7 @@
 //! order of the weight's last three axes, so `W.reshape(C_out, C k_h k_w)` multiplies it.
 
 use super::contiguous;
+use candle_core::WithDType;
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Result, Shape, Tensor};
 use candle_nn::VarBuilder;
@@ -403,14 +404,115 @@ impl ConstantWeightConv {
                 dims.k
             );
         }
-        let panels = column_panels(x, b, g);
+        let packed = super::product::left_panels(w, dims.m, dims.k);
+        let w = super::product::Shared::Panels(&packed);
         let mut y = vec![T::default(); b * dims.m * dims.n];
-        let w = super::product::Shared::Plain {
-            data: w,
-            transposed: false,
-        };
-        super::product::left_products_packed(w, &panels, dims, b, (&mut y, None));
+        let img = g.c * g.h * g.w;
+        let per = images_per_chunk::<T>(dims.k * dims.n);
+        for (xs, ys) in x[..b * img]
+            .chunks(per * img)
+            .zip(y.chunks_mut(per * dims.m * dims.n))
+        {
+            let nb = xs.len() / img;
+            let panels = column_panels(xs, nb, g);
+            super::product::left_products_packed(w, &panels, dims, nb, (ys, None));
+        }
         Ok(T::to_cpu_storage_owned(y))
+    }
+}
+
+/// Images per slice of a batch whose per-image working buffer holds `per_image` values:
+/// enough to fill [`CHUNK_BYTES`], at least one. The products define every element alone
+/// (`kernels::product`), so slicing a batch changes no bit; it keeps the columns' buffers
+/// small enough for the heap to reuse (glibc serves requests above 32 MiB with fresh `mmap`s,
+/// whose pages are faulted in and zeroed on every call) and warm in the cache.
+fn images_per_chunk<T>(per_image: usize) -> usize {
+    (CHUNK_BYTES / (per_image * std::mem::size_of::<T>()).max(1)).max(1)
+}
+
+/// The size a batch's column buffers are sliced to ([`images_per_chunk`]).
+const CHUNK_BYTES: usize = 8 << 20;
+
+/// The input's gradient of [`ConstantWeightConv`]: `dx_b = col2im(Wᵀ · g_b)` for each image
+/// `b` of `grad (B, C_out, L)`, with `w (C_out, C k k)`, computed a slice of images at a time
+/// ([`images_per_chunk`]) so that the columns' gradient never exists for the whole batch.
+/// Each product is [`super::batch::PerSampleProduct`]'s (weight transposed, on the left) and
+/// each image's col2im [`col2im_t`]'s, so the bits are theirs.
+#[derive(Clone, Copy, Debug)]
+struct ConvInputGrad(Geom);
+
+impl ConvInputGrad {
+    fn backward<T>(&self, grad: &[T], b: usize, w: &[T]) -> Result<Vec<T>>
+    where
+        T: Copy + Default + std::ops::AddAssign + super::product::Element,
+    {
+        let g = self.0;
+        let (ho, wo) = g.out_hw();
+        let (l, ckk, img) = (ho * wo, g.ckk(), g.c * g.h * g.w);
+        let co = w.len() / ckk.max(1);
+        if co * ckk != w.len() || grad.len() < b * co * l {
+            candle_core::bail!(
+                "conv2d backward: a weight of {} values and a gradient of {} for {b} images of ({co}, {l}), expected ({co}, {ckk})",
+                w.len(),
+                grad.len()
+            );
+        }
+        let dims = super::product::Dims {
+            m: ckk,
+            k: co,
+            n: l,
+        };
+        let weight = super::product::Shared::Plain {
+            data: w,
+            transposed: true,
+        };
+        let per = images_per_chunk::<T>(ckk * l);
+        let mut out = vec![T::default(); b * img];
+        let mut dcols = vec![T::ZERO; per.min(b) * ckk * l];
+        for (gs, os) in grad[..b * co * l]
+            .chunks(per * co * l)
+            .zip(out.chunks_mut(per * img))
+        {
+            let nb = gs.len() / (co * l);
+            let dc = &mut dcols[..nb * ckk * l];
+            super::product::products(super::batch::Side::Left, weight, gs, dims, nb, dc);
+            for (src, dst) in dc.chunks(ckk * l).zip(os.chunks_mut(img)) {
+                col2im_image(src, dst, g);
+            }
+        }
+        Ok(out)
+    }
+}
+
+impl CustomOp2 for ConvInputGrad {
+    fn name(&self) -> &'static str {
+        "mte-conv2d-input-grad"
+    }
+
+    fn cpu_fwd(
+        &self,
+        sg: &CpuStorage,
+        lg: &Layout,
+        sw: &CpuStorage,
+        lw: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = self.0;
+        let b = lg.dims()[0];
+        let out =
+            match (sg, sw) {
+                (CpuStorage::F32(v), CpuStorage::F32(w)) => f32::to_cpu_storage_owned(
+                    self.backward(contiguous(v, lg)?, b, contiguous(w, lw)?)?,
+                ),
+                (CpuStorage::F64(v), CpuStorage::F64(w)) => f64::to_cpu_storage_owned(
+                    self.backward(contiguous(v, lg)?, b, contiguous(w, lw)?)?,
+                ),
+                _ => candle_core::bail!(
+                    "conv2d backward: unsupported dtypes {:?} x {:?}",
+                    sg.dtype(),
+                    sw.dtype()
+                ),
+            };
+        Ok((out, Shape::from((b, g.c, g.h, g.w))))
     }
 }
 
@@ -455,19 +557,10 @@ impl CustomOp2 for ConstantWeightConv {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let g = self.0;
         let (b, co, ho, wo) = grad.dims4()?;
-        // Wᵀ (C k k, C_out) times each image's gradient (C_out, L): the columns' gradient,
-        // transposed, (B, C k k, L).
+        // Wᵀ (C k k, C_out) times each image's gradient (C_out, L), then col2im.
         let grad = grad.reshape((b, co, ho * wo))?.contiguous()?;
-        let back = super::batch::PerSampleProduct {
-            side: super::batch::Side::Left,
-            transpose: true,
-        };
-        let dcols = grad.apply_op2_no_bwd(&w.reshape((co, g.ckk()))?, &back)?;
-        let col2im = Col2Im {
-            g,
-            transposed: true,
-        };
-        Ok((Some(dcols.apply_op1_no_bwd(&col2im)?), None))
+        let w = w.reshape((co, g.ckk()))?.contiguous()?;
+        Ok((Some(grad.apply_op2_no_bwd(&w, &ConvInputGrad(g))?), None))
     }
 }
 
@@ -770,6 +863,34 @@ mod tests {
             let (df, gf) = probe_gradient(&fused, &r, &x);
             assert_eq!(bits(&dc), bits(&df), "input gradient, case {i}");
             assert!(gf.get(&wt).is_none(), "a constant weight gets no gradient");
+        }
+        Ok(())
+    }
+
+    /// A batch larger than one slice ([`images_per_chunk`]: here 3 slices, the last partial)
+    /// gives each image's output and input gradient exactly as that image alone does.
+    #[test]
+    fn sliced_batches_are_each_image_alone_bit_for_bit() -> Result<()> {
+        use super::super::Products::PerSample;
+        let (b, c, h, w, k) = (60, 8, 32, 32, 3);
+        let per = images_per_chunk::<f32>(c * k * k * h * w);
+        assert!(per < b && b.div_ceil(per) >= 3, "{per} images per slice");
+        let f = |t: Tensor| t.to_dtype(DType::F32);
+        let x = Var::from_tensor(&f(rand(&[b, c, h, w], 91))?)?;
+        let wt = f(rand(&[4, c, k, k], 92))?;
+        let r = f(rand(&[b, 4, h, w], 93))?;
+        let y = conv2d(x.as_tensor(), &wt, 1, 1, PerSample)?;
+        let (dx, _) = probe_gradient(&y, &r, &x);
+        for i in [0, per - 1, per, 2 * per + 1, b - 1] {
+            let xi = Var::from_tensor(&x.as_tensor().narrow(0, i, 1)?)?;
+            let yi = conv2d(xi.as_tensor(), &wt, 1, 1, PerSample)?;
+            let (dxi, _) = probe_gradient(&yi, &r.narrow(0, i, 1)?, &xi);
+            assert_eq!(bits(&y.narrow(0, i, 1)?), bits(&yi), "output, image {i}");
+            assert_eq!(
+                bits(&dx.narrow(0, i, 1)?),
+                bits(&dxi),
+                "input gradient, image {i}"
+            );
         }
         Ok(())
     }

@@ -305,9 +305,11 @@ pub enum PolicyObsArg {
 /// `mte train diffusion`
 #[derive(Debug, Args)]
 pub struct TrainDiffusionArgs {
-    /// Dataset directory (from `mte data generate`).
-    #[arg(long, value_name = "DIR")]
-    pub data: PathBuf,
+    /// Dataset directory (from `mte data generate` or `mte data takeover`); repeat it to
+    /// train on several as one (episodes in order, normalisation statistics pooled; the
+    /// first one's feature sizes set the policy's).
+    #[arg(long, value_name = "DIR", required = true)]
+    pub data: Vec<PathBuf>,
     /// Model preset: `paper` is Diffusion Policy's published PushT configuration of the
     /// backbone (the U-Net's down_dims 512/1024/2048, 100 DDPM steps), `cpu` a small one
     /// that trains on 2 CPU cores (the U-Net's 32/64/128, 16 DDIM steps).
@@ -365,6 +367,84 @@ pub enum SimCommand {
 pub enum DataCommand {
     /// Generate scripted-expert demonstrations on PushT.
     Generate(DataGenerateArgs),
+    /// Corrective demonstrations on PushT (DAgger's data): a policy drives each episode up
+    /// to a random switch step, then the scripted expert takes over from the state the
+    /// policy reached; only the expert's frames are recorded.
+    Takeover(DataTakeoverArgs),
+}
+
+/// `mte data takeover`
+#[derive(Debug, Args)]
+pub struct DataTakeoverArgs {
+    /// The policy that drives each episode before the switch (checkpoint directory).
+    #[arg(long, value_name = "DIR")]
+    pub checkpoint: PathBuf,
+    /// The policy's arm: `open-loop`, or an aggregator text form (e.g. `ewm:0.01`).
+    #[arg(long, default_value = "ewm:0.01", value_parser = arm)]
+    pub execution: String,
+    /// The policy's query stride (control steps).
+    #[arg(long, default_value_t = 2, value_parser = at_least_one)]
+    pub stride: usize,
+    /// Switch steps, drawn uniformly per episode: `FIRST..LAST` (control steps, both
+    /// included, LAST below --max-steps).
+    #[arg(long, default_value = "10..250", value_parser = step_range)]
+    pub switch: (usize, usize),
+    /// Number of episodes (those the policy finishes before its switch record nothing).
+    #[arg(long, default_value_t = 100, value_parser = at_least_one)]
+    pub episodes: usize,
+    /// Base seed: episode i resets with seed + i (keep clear of the test seeds
+    /// 100000-100049 and the validation seeds 200000-200049).
+    #[arg(long, default_value_t = 300_000)]
+    pub seed: u64,
+    /// Reset stream.
+    #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
+    pub stream: StreamArg,
+    /// Observations to record besides the agent position: comma-separated subset of
+    /// state, keypoints, pixels.
+    #[arg(long, default_value = "state,keypoints")]
+    pub obs: mte_data::ObsSet,
+    /// Side of recorded frames (px).
+    #[arg(long, default_value_t = 96)]
+    pub image_size: usize,
+    /// Step limit per episode (the policy's part included).
+    #[arg(long, default_value_t = 300, value_parser = at_least_one)]
+    pub max_steps: usize,
+    /// The expert's travel step (px), as for the demonstrations.
+    #[arg(long, default_value_t = ExpertConfig::default().travel_step)]
+    pub travel_step: f64,
+    /// The expert's push step (px), as for the demonstrations.
+    #[arg(long, default_value_t = ExpertConfig::default().push_step)]
+    pub push_step: f64,
+    /// Let the expert's first plan continue a push it finds the agent inside (otherwise it
+    /// backs out to approach again, as the demonstrating expert would plan from there).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    pub resume_pushes: bool,
+    /// Seed of the policy's sampling noise.
+    #[arg(long, default_value_t = 0)]
+    pub noise_seed: u64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Output directory (must not already hold a dataset).
+    #[arg(long, short, value_name = "DIR")]
+    pub out: PathBuf,
+}
+
+/// `FIRST..LAST`, both included.
+fn step_range(s: &str) -> Result<(usize, usize), String> {
+    let (a, b) = s
+        .split_once("..")
+        .ok_or_else(|| format!("{s:?}: expected FIRST..LAST, e.g. 10..250"))?;
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<usize>()
+            .map_err(|e| format!("{v:?} in {s:?}: {e}"))
+    };
+    let (a, b) = (parse(a)?, parse(b)?);
+    if a > b {
+        return Err(format!("{s:?}: FIRST must not exceed LAST"));
+    }
+    Ok((a, b))
 }
 
 /// Which random stream a seeded reset draws from.

@@ -40,6 +40,7 @@ fn main() -> ExitCode {
         Command::Sim(SimCommand::Rollout(a)) => cmd::sim::rollout(&cli, a),
         Command::Sim(SimCommand::Bench(a)) => cmd::sim::bench(&cli, a),
         Command::Data(DataCommand::Generate(a)) => cmd::data::generate(&cli, a),
+        Command::Data(DataCommand::Takeover(a)) => cmd::data::takeover(&cli, a),
         Command::Train(TrainCommand::Diffusion(a)) => cmd::train::diffusion(&cli, a),
         Command::Train(TrainCommand::Encoder(a)) => cmd::train::encoder(&cli, a),
         Command::Train(TrainCommand::Act(a)) => cmd::train::act(&cli, a),

@@ -493,6 +493,85 @@ impl Dataset {
         })
     }
 
+    /// The datasets one after another, as one: their episodes renumbered in order (each
+    /// keeps its seed), `episode_index` and the episodes' start frames offset, the
+    /// statistics pooled ([`FeatureStats::pooled`]), the generators listed in order. Every
+    /// part must store the same features with the same shapes at the same rate.
+    ///
+    /// # Errors
+    /// No parts, or a part whose features, shapes or fps differ from the first's (named by
+    /// its position).
+    pub fn concat(parts: Vec<Dataset>) -> Result<Dataset, DataError> {
+        let mut parts = parts.into_iter();
+        let mut out = parts.next().ok_or_else(|| DataError::Config {
+            field: "datasets",
+            value: "none".into(),
+            expected: "at least one dataset",
+        })?;
+        let generators = vec![out.info.generator.clone()];
+        out.info.generator = serde_json::Value::Array(generators);
+        for (position, part) in parts.enumerate() {
+            out.append(part, position + 1)?;
+        }
+        Ok(out)
+    }
+
+    fn append(&mut self, part: Dataset, position: usize) -> Result<(), DataError> {
+        let differs = |reason: String| DataError::Format {
+            path: PathBuf::from(format!("dataset {position} of the concatenation")),
+            reason,
+        };
+        let shapes = |i: &Info| -> Vec<(String, DType, Vec<usize>)> {
+            let f = i.features.iter();
+            f.map(|(k, f)| (k.clone(), f.dtype, f.shape.clone()))
+                .collect()
+        };
+        if shapes(&part.info) != shapes(&self.info) || part.info.fps != self.info.fps {
+            return Err(differs(format!(
+                "features {:?} at {} fps, expected the first dataset's {:?} at {} fps",
+                shapes(&part.info),
+                part.info.fps,
+                shapes(&self.info),
+                self.info.fps
+            )));
+        }
+        let (episodes, frames) = (self.info.episodes, self.info.frames);
+        for (name, mut values) in part.floats {
+            if name == names::EPISODE_INDEX {
+                values.iter_mut().for_each(|e| *e += episodes as f32);
+            }
+            self.floats.entry(name).or_default().extend(values);
+        }
+        if let (Some(a), Some(b)) = (&mut self.images, part.images) {
+            a.extend(b);
+        }
+        for (name, s) in &part.stats {
+            let pooled = match self.stats.get(name) {
+                Some(mine) => mine.pooled(s).ok_or_else(|| {
+                    differs(format!("statistics of {name:?} of another dimension"))
+                })?,
+                None => {
+                    return Err(differs(format!(
+                        "statistics of {name:?}, which the first lacks"
+                    )));
+                }
+            };
+            self.stats.insert(name.clone(), pooled);
+        }
+        self.episodes
+            .extend(part.episodes.into_iter().map(|e| EpisodeMeta {
+                index: e.index + episodes,
+                start: e.start + frames,
+                ..e
+            }));
+        self.info.episodes += part.info.episodes;
+        self.info.frames += part.info.frames;
+        if let serde_json::Value::Array(g) = &mut self.info.generator {
+            g.push(part.info.generator);
+        }
+        Ok(())
+    }
+
     /// Episode lengths in order (for [`crate::WindowSampler`]).
     pub fn episode_lengths(&self) -> Vec<usize> {
         self.episodes.iter().map(|e| e.length).collect()

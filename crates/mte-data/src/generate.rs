@@ -139,11 +139,34 @@ fn run_episode(config: &GenerateConfig, i: usize) -> Result<Episode, DataError> 
     env.reset(seed, config.stream)?;
     let mut expert = Expert::new(config.expert.clone())?;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(config.seed ^ (i as u64).rotate_left(32));
+    let (frames, max_coverage) = record_expert(&mut env, &mut expert, &mut rng, config, 0)?;
+    Ok(Episode {
+        seed,
+        max_coverage,
+        frames,
+    })
+}
+
+/// The expert's frames from `env` as it stands, control step `from_step` of its episode,
+/// until success or `config.max_steps` (none when `from_step` is already there), with the
+/// observations of `config.obs` at `config.image_size`; and the episode's maximum coverage
+/// from that state on. `expert` plans from the state it finds (a fresh expert plans at its
+/// first call); `rng` feeds its action noise.
+///
+/// # Errors
+/// The simulator or the renderer failed.
+pub fn record_expert<R: rand::Rng>(
+    env: &mut PushT,
+    expert: &mut Expert,
+    rng: &mut R,
+    config: &GenerateConfig,
+    from_step: usize,
+) -> Result<(Vec<Frame>, f64), DataError> {
     let mut renderer = config.obs.pixels.then(|| Renderer::new(env.goal()));
     let (w, h) = config.image_size;
     let mut frames = Vec::new();
     let mut max_coverage = env.coverage();
-    for t in 0..config.max_steps {
+    for t in from_step..config.max_steps {
         let s = env.state_obs();
         let image = match &mut renderer {
             Some(r) => {
@@ -160,7 +183,7 @@ fn run_episode(config: &GenerateConfig, i: usize) -> Result<Episode, DataError> 
             None => None,
         };
         let kp = env.keypoints();
-        let action = expert.act(&env, &mut rng)?;
+        let action = expert.act(env, rng)?;
         let info = env.step(action)?;
         max_coverage = max_coverage.max(info.coverage);
         let done = info.is_success || t + 1 == config.max_steps;
@@ -181,11 +204,7 @@ fn run_episode(config: &GenerateConfig, i: usize) -> Result<Episode, DataError> 
             break;
         }
     }
-    Ok(Episode {
-        seed,
-        max_coverage,
-        frames,
-    })
+    Ok((frames, max_coverage))
 }
 
 /// Generate `config.episodes` expert demonstrations into `out` (a new directory), calling

@@ -17,6 +17,47 @@ pub struct FeatureStats {
     pub count: u64,
 }
 
+impl FeatureStats {
+    /// The statistics of the union of two disjoint sets of frames, from each set's own:
+    /// extremes of the extremes, the count-weighted mean, and the population variance
+    /// pooled through each set's second moment (`std^2 + mean^2`). `None` when the
+    /// coordinate counts differ.
+    pub fn pooled(&self, other: &FeatureStats) -> Option<FeatureStats> {
+        let dim = self.mean.len();
+        let same = |v: &[f64]| v.len() == dim;
+        if !(same(&self.min) && same(&self.max) && same(&self.std))
+            || !(same(&other.min) && same(&other.max) && same(&other.mean) && same(&other.std))
+        {
+            return None;
+        }
+        let n = self.count + other.count;
+        let (wa, wb) = match n {
+            0 => (0.5, 0.5),
+            _ => (self.count as f64 / n as f64, other.count as f64 / n as f64),
+        };
+        let mut mean = Vec::with_capacity(dim);
+        let mut std = Vec::with_capacity(dim);
+        for k in 0..dim {
+            let (ma, mb) = (self.mean[k], other.mean[k]);
+            let m = wa * ma + wb * mb;
+            let second =
+                wa * (self.std[k].powi(2) + ma * ma) + wb * (other.std[k].powi(2) + mb * mb);
+            mean.push(m);
+            std.push((second - m * m).max(0.0).sqrt());
+        }
+        let zip = |a: &[f64], b: &[f64], f: fn(f64, f64) -> f64| {
+            a.iter().zip(b).map(|(&x, &y)| f(x, y)).collect()
+        };
+        Some(FeatureStats {
+            min: zip(&self.min, &other.min, f64::min),
+            max: zip(&self.max, &other.max, f64::max),
+            mean,
+            std,
+            count: n,
+        })
+    }
+}
+
 /// Streaming accumulator (sums in f64; values are bounded, so no cancellation trouble at the
 /// sizes we handle: pixels <= 1, positions <= ~600 px).
 #[derive(Clone, Debug)]
@@ -142,6 +183,39 @@ mod tests {
         assert_eq!(s.min[1], 0.0);
         assert!((s.mean[2] - 0.4).abs() < 1e-12);
         assert!((s.std[2] - 0.2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn pooled_stats_are_the_unions() {
+        let rows = [
+            [1.0, -2.0],
+            [3.0, 0.5],
+            [2.0, 4.0],
+            [10.0, -1.0],
+            [-4.0, 7.5],
+        ];
+        let stats_of = |rs: &[[f64; 2]]| {
+            let mut acc = StatsAccumulator::new(2);
+            rs.iter().for_each(|r| acc.push(r));
+            acc.finish().expect("non-empty")
+        };
+        let whole = stats_of(&rows);
+        let pooled = stats_of(&rows[..2])
+            .pooled(&stats_of(&rows[2..]))
+            .expect("same dimension");
+        assert_eq!(pooled.count, 5);
+        assert_eq!(pooled.min, whole.min);
+        assert_eq!(pooled.max, whole.max);
+        for k in 0..2 {
+            assert!((pooled.mean[k] - whole.mean[k]).abs() < 1e-12, "{k}");
+            assert!((pooled.std[k] - whole.std[k]).abs() < 1e-12, "{k}");
+        }
+        let one = stats_of(&[[1.0, 2.0]]);
+        let three = FeatureStats {
+            min: vec![0.0; 3],
+            ..one.clone()
+        };
+        assert!(one.pooled(&three).is_none());
     }
 
     #[test]

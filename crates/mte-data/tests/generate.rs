@@ -115,3 +115,58 @@ fn obs_list_parses_and_rejects_unknown_names() {
         .to_string();
     assert!(e.contains("depth"), "{e}");
 }
+
+#[test]
+fn concatenated_datasets_equal_one_generated_whole() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let make = |name: &str, seed: u64, episodes: usize| {
+        let dir = tmp.path().join(name);
+        let c = GenerateConfig {
+            seed,
+            episodes,
+            ..config()
+        };
+        generate(&c, &dir, &|_| {}).expect("generate");
+        Dataset::load(&dir).expect("load")
+    };
+    let whole = make("whole", 7, 3);
+    let parts = vec![make("a", 7, 1), make("b", 8, 2)];
+    let joined = Dataset::concat(parts).expect("same features");
+    assert_eq!(joined.episodes, whole.episodes);
+    assert_eq!(joined.floats, whole.floats);
+    assert_eq!(joined.images, whole.images);
+    assert_eq!(
+        (joined.info.episodes, joined.info.frames),
+        (whole.info.episodes, whole.info.frames)
+    );
+    for (name, s) in &whole.stats {
+        let j = &joined.stats[name];
+        assert_eq!(
+            (&j.min, &j.max, j.count),
+            (&s.min, &s.max, s.count),
+            "{name}"
+        );
+        for (a, b) in j.mean.iter().zip(&s.mean).chain(j.std.iter().zip(&s.std)) {
+            assert!((a - b).abs() < 1e-9 * (1.0 + b.abs()), "{name}: {a} vs {b}");
+        }
+    }
+    // A part without images is refused, naming its position.
+    let no_pixels = {
+        let dir = tmp.path().join("kp");
+        let c = GenerateConfig {
+            obs: ObsSet {
+                state: true,
+                keypoints: true,
+                pixels: false,
+            },
+            ..config()
+        };
+        generate(&c, &dir, &|_| {}).expect("generate");
+        Dataset::load(&dir).expect("load")
+    };
+    let e = Dataset::concat(vec![whole, no_pixels])
+        .expect_err("different features")
+        .to_string();
+    assert!(e.contains("dataset 1"), "{e}");
+    assert!(Dataset::concat(Vec::new()).is_err());
+}

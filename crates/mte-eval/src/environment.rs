@@ -149,6 +149,11 @@ impl PushTEnv {
     pub fn sim(&self) -> &PushT {
         &self.env
     }
+
+    /// The simulator as the last step left it.
+    pub fn into_sim(self) -> PushT {
+        self.env
+    }
 }
 
 impl Environment for PushTEnv {

@@ -11,7 +11,8 @@
 //!   [`train_data`]: the arrays a policy trains, is attacked or fine-tuned on, from a
 //!   dataset; [`dispersion`]: how spread the candidates an aggregator combines are (the
 //!   instrument of the clean-data confound); [`film`]: episodes drawn side by side (the
-//!   paper's Figure 2).
+//!   paper's Figure 2); [`takeover`]: corrective demonstrations, the expert taking over
+//!   from states a policy reached (DAgger's data).
 //! - [`synthetic`]: a stress test without a simulator. A smooth reference trajectory, a
 //!   chunked "policy" that predicts it with small noise, and a burst schedule that replaces
 //!   `q` of every `M_min` queries with arbitrary values. Every aggregator sees the same
@@ -45,6 +46,7 @@ pub mod report;
 pub mod store;
 pub mod sweep;
 pub mod synthetic;
+pub mod takeover;
 pub mod train_data;
 
 /// Progress callbacks for long-running work. All methods default to doing nothing.

@@ -81,6 +81,28 @@ pub fn load(
     from_dataset(&ds, config, extra)
 }
 
+/// Loads the datasets at `dirs` as one ([`Dataset::concat`]: episodes in order, statistics
+/// pooled) and takes the arrays a policy of `config` needs: demonstrations and corrective
+/// episodes (`mte data takeover`) trained on together.
+pub fn load_many(
+    dirs: &[PathBuf],
+    config: &DiffusionConfig,
+    extra: Extra,
+) -> Result<TrainData, TrainDataError> {
+    let load = |dir: &PathBuf| {
+        Dataset::load(dir).map_err(|source| TrainDataError::Load {
+            dir: dir.clone(),
+            source,
+        })
+    };
+    let parts = dirs.iter().map(load).collect::<Result<Vec<_>, _>>()?;
+    let ds = Dataset::concat(parts).map_err(|source| TrainDataError::Load {
+        dir: dirs.first().cloned().unwrap_or_default(),
+        source,
+    })?;
+    from_dataset(&ds, config, extra)
+}
+
 /// The arrays a policy of `config` needs, from a loaded dataset.
 pub fn from_dataset(
     ds: &Dataset,

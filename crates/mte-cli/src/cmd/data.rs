@@ -1,4 +1,4 @@
-//! `mte data generate`.
+//! `mte data generate`, `mte data takeover`.
 
 use std::io::Write as _;
 
@@ -6,7 +6,7 @@ use anyhow::{Context, Result};
 use mte_data::{GenerateConfig, generate as run_generate};
 use mte_sim::expert::ExpertConfig;
 
-use crate::args::{Cli, DataGenerateArgs, Format};
+use crate::args::{Cli, DataGenerateArgs, DataTakeoverArgs, Format};
 use crate::progress::Bar;
 
 /// `mte data generate`
@@ -120,6 +120,95 @@ fn generate_bridged(
                     out,
                     "{} episodes of {target}'s expert ({} frames) in {secs:.0} s -> {}",
                     info.episodes,
+                    info.frames,
+                    a.out.display()
+                )?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// `mte data takeover`
+pub fn takeover(cli: &Cli, a: &DataTakeoverArgs) -> Result<()> {
+    use mte_eval::Reporter as _;
+    use mte_eval::takeover::{TakeoverConfig, generate_takeover};
+    let config = TakeoverConfig {
+        record: GenerateConfig {
+            episodes: a.episodes,
+            seed: a.seed,
+            stream: a.stream.into(),
+            obs: a.obs,
+            image_size: (a.image_size, a.image_size),
+            max_steps: a.max_steps,
+            expert: ExpertConfig {
+                travel_step: a.travel_step,
+                push_step: a.push_step,
+                resume_pushes: a.resume_pushes,
+                ..ExpertConfig::default()
+            },
+        },
+        execution: a.execution.parse().with_context(|| {
+            format!(
+                "--execution {:?}: expected open-loop or an aggregator",
+                a.execution
+            )
+        })?,
+        h: a.stride,
+        switch: a.switch,
+        noise_seed: a.noise_seed,
+    };
+    config.validate().context("check the takeover flags")?;
+    let policy = mte_eval::sweep::load_named_policy(&a.checkpoint, &candle_core::Device::Cpu)
+        .with_context(|| format!("loading {}", a.checkpoint.display()))?;
+    let mut pool = rayon::ThreadPoolBuilder::new();
+    if let Some(t) = a.threads {
+        anyhow::ensure!(t >= 1, "--threads must be at least 1");
+        pool = pool.num_threads(t);
+    }
+    let pool = pool.build()?;
+    let bar = Bar::new(!cli.no_progress && !cli.quiet);
+    bar.start("episodes", a.episodes as u64);
+    let tally = std::sync::Mutex::new((0usize, 0usize, 0.0f64));
+    let t0 = std::time::Instant::now();
+    let name = a.checkpoint.display().to_string();
+    let info = pool
+        .install(|| {
+            generate_takeover(policy.as_ref(), &name, &config, &a.out, &|e| {
+                let mut t = tally
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+                t.0 += usize::from(e.policy_success);
+                t.1 += usize::from(e.expert_success);
+                t.2 += e.coverage_at_switch;
+                bar.advance(1);
+            })
+        })
+        .with_context(|| format!("recording takeovers into {}", a.out.display()))?;
+    bar.finish();
+    let (policy_done, expert_ok, coverage) = tally
+        .into_inner()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    let secs = t0.elapsed().as_secs_f64();
+    let mean_switch_coverage = coverage / a.episodes as f64;
+    let mut out = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(
+            out,
+            "{}",
+            serde_json::json!({ "out": a.out, "episodes": a.episodes, "recorded": info.episodes, "frames": info.frames,
+                "policy_finished_first": policy_done, "expert_successes": expert_ok,
+                "mean_coverage_at_switch": mean_switch_coverage, "seconds": secs })
+        )?,
+        Format::Text => {
+            if !cli.quiet {
+                writeln!(
+                    out,
+                    "{} of {} episodes recorded ({policy_done} finished by the policy before the switch), \
+                     {} frames, expert successful in {expert_ok}, mean coverage at the switch {mean_switch_coverage:.3}, \
+                     {secs:.1} s -> {}",
+                    info.episodes,
+                    a.episodes,
                     info.frames,
                     a.out.display()
                 )?;

@@ -75,14 +75,15 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         config = with_transformer(config, a.preset, obs)?;
     }
     // State and action sizes come from the data (PushT 2-D, robomimic 9-D and 7-D).
-    let info_path = a.data.join("info.json");
+    let first = a.data.first().context("--data: at least one dataset")?;
+    let info_path = first.join("info.json");
     let info: mte_data::Info = serde_json::from_str(
         &std::fs::read_to_string(&info_path)
             .with_context(|| format!("reading {}", info_path.display()))?,
     )
     .with_context(|| format!("parsing {}", info_path.display()))?;
     mte_eval::train_data::fit_shapes(&mut config, &info);
-    let data = load_train_data(&a.data, &config)?;
+    let data = train_data::load_many(&a.data, &config, train_data::Extra::default())?;
     let tc = TrainConfig {
         steps: a.steps,
         batch_size: a.batch_size,

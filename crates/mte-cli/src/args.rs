@@ -341,6 +341,11 @@ pub struct TrainDiffusionArgs {
     /// encoder.safetensors of `mte train encoder`, or a model.safetensors); ignored on resume.
     #[arg(long, value_name = "FILE")]
     pub init: Option<PathBuf>,
+    /// Normalise with this checkpoint's statistics instead of the data's (for a warm start
+    /// from it on data whose ranges differ, e.g. corrective episodes that leave the
+    /// workspace: the network then sees its inputs and targets scaled as it was trained).
+    #[arg(long, value_name = "DIR")]
+    pub normalization_from: Option<PathBuf>,
     /// Keep the image encoder fixed and cache each frame's features (centre crop): a step
     /// then costs about what a keypoint policy's does.
     #[arg(long)]

@@ -1081,3 +1081,84 @@ fn bundled_act_policy_runs_ensembled_episodes() {
         assert!((0.0..=1.0).contains(&c), "{arm}: {v}");
     }
 }
+
+/// Corrective episodes from a policy, trained on beside the demonstrations: with
+/// `--normalization-from` the new checkpoint keeps the warm start's statistics, without it
+/// they are pooled over both datasets.
+#[test]
+fn takeover_episodes_train_beside_demonstrations() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    mte()
+        .args(["data", "generate", "--episodes", "2", "--max-steps", "20"])
+        .arg("--out")
+        .arg(p("demos"))
+        .assert()
+        .success();
+    let v = json_stdout(
+        mte()
+            .args([
+                "--format",
+                "json",
+                "data",
+                "takeover",
+                "--checkpoint",
+                "expert:pusht",
+            ])
+            .args(["--switch", "2..12", "--episodes", "3", "--max-steps", "30"])
+            .arg("--out")
+            .arg(p("fixes")),
+    );
+    assert_eq!(v["episodes"], 3);
+    let recorded = v["recorded"].as_u64().unwrap();
+    assert!(recorded >= 1, "{v}");
+    let info: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(p("fixes/info.json")).unwrap()).unwrap();
+    assert_eq!(info["episodes"].as_u64(), Some(recorded));
+    assert_eq!(info["generator"]["takeover"]["execution"], "ewm:0.01");
+    mte()
+        .args(["data", "takeover", "--checkpoint", "expert:pusht"])
+        .args(["--switch", "12..2", "--out"])
+        .arg(p("bad"))
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("FIRST must not exceed LAST"));
+
+    let tiny = p("tiny.json");
+    fs::write(
+        &tiny,
+        r#"{"down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8}"#,
+    )
+    .unwrap();
+    let train = |out: &str, data: &[&str], extra: &[&str]| {
+        let mut c = mte();
+        c.args(["train", "diffusion", "--steps", "1", "--batch-size", "4"])
+            .args(["--checkpoint-every", "0", "--config"])
+            .arg(&tiny);
+        for d in data {
+            c.arg("--data").arg(p(d));
+        }
+        c.args(extra).arg("--out").arg(p(out)).assert().success();
+    };
+    let stats = |ckpt: &str| {
+        fs::read(p(ckpt).join("policy_preprocessor_step_3_normalizer_processor.safetensors"))
+            .unwrap()
+    };
+    train("first", &["demos"], &[]);
+    let init = p("first/model.safetensors");
+    let init = init.to_str().unwrap();
+    let from = p("first");
+    let from = from.to_str().unwrap();
+    train(
+        "kept",
+        &["demos", "fixes"],
+        &["--init", init, "--normalization-from", from],
+    );
+    train("pooled", &["demos", "fixes"], &["--init", init]);
+    assert_eq!(stats("kept"), stats("first"), "the warm start's statistics");
+    assert_ne!(
+        stats("pooled"),
+        stats("first"),
+        "statistics of both datasets"
+    );
+}

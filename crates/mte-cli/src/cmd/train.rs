@@ -2,7 +2,7 @@
 
 use std::io::Write as _;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, ensure};
 use candle_core::Device;
 use mte_eval::Reporter as _;
 use mte_eval::train_data;
@@ -83,7 +83,20 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
     )
     .with_context(|| format!("parsing {}", info_path.display()))?;
     mte_eval::train_data::fit_shapes(&mut config, &info);
-    let data = train_data::load_many(&a.data, &config, train_data::Extra::default())?;
+    let mut data = train_data::load_many(&a.data, &config, train_data::Extra::default())?;
+    if let Some(dir) = &a.normalization_from {
+        let stats = mte_policy::checkpoint::read_stats(dir)
+            .with_context(|| format!("--normalization-from {}", dir.display()))?;
+        let vectors = config.input_features.iter().chain(&config.output_features);
+        for (name, _) in vectors.filter(|(_, f)| f.shape.len() == 1) {
+            ensure!(
+                stats.contains_key(name),
+                "--normalization-from {}: no statistics of {name:?}, which the policy normalises",
+                dir.display()
+            );
+        }
+        data.stats.extend(stats);
+    }
     let tc = TrainConfig {
         steps: a.steps,
         batch_size: a.batch_size,

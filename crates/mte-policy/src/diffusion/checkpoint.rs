@@ -124,6 +124,15 @@ fn read_checkpoint(
     Ok((config, weights, stats))
 }
 
+/// A checkpoint directory's normalisation statistics (from either layout), e.g. to keep a
+/// warm start's scaling when training on data whose ranges differ.
+///
+/// # Errors
+/// As [`load`]: a missing or unreadable config, weights or processor file.
+pub fn read_stats(dir: &Path) -> Result<StatsMap, PolicyError> {
+    Ok(read_checkpoint(dir, &Device::Cpu)?.2)
+}
+
 /// Adds the statistics of LeRobot >= 0.4's processor files in `dir` to `stats`.
 pub(crate) fn read_processor_stats(
     dir: &Path,

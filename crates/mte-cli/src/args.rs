@@ -341,6 +341,10 @@ pub struct TrainDiffusionArgs {
     /// encoder.safetensors of `mte train encoder`, or a model.safetensors); ignored on resume.
     #[arg(long, value_name = "FILE")]
     pub init: Option<PathBuf>,
+    /// Train only on the windows of successful episodes (e.g. corrective episodes in which
+    /// the expert did not finish).
+    #[arg(long)]
+    pub successful_only: bool,
     /// Normalise with this checkpoint's statistics instead of the data's (for a warm start
     /// from it on data whose ranges differ, e.g. corrective episodes that leave the
     /// workspace: the network then sees its inputs and targets scaled as it was trained).

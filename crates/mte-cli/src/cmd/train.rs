@@ -104,6 +104,7 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         checkpoint_every: a.checkpoint_every,
         init: a.init.clone(),
         freeze_encoder: a.freeze_encoder,
+        successful_only: a.successful_only,
         ..TrainConfig::default()
     };
     let bar = Bar::for_cli(cli, "train", a.steps);

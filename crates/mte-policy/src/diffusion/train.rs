@@ -805,3 +805,35 @@ pub fn stats_from(
         })
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::ObsKind;
+
+    #[test]
+    fn successful_only_keeps_the_windows_of_successful_episodes() {
+        let c = DiffusionConfig::cpu(ObsKind::Keypoints);
+        let lengths = vec![20, 30, 25];
+        let frames: usize = lengths.iter().sum();
+        let data = TrainData {
+            state: vec![0.0; frames * 2],
+            env_state: Some(vec![0.0; frames * 16]),
+            images: None,
+            action: vec![0.0; frames * 2],
+            episode_lengths: lengths.clone(),
+            episode_success: vec![true, false, true],
+            stats: StatsMap::new(),
+        };
+        // LeRobot's padding: T_o - 1 windows before each start, n_action_steps - 1 after.
+        let per = |len: usize| len + c.n_obs_steps - 1 + c.n_action_steps - 1 - c.horizon + 1;
+        let all = Windows::new(&data, &c, false);
+        assert_eq!(all.len(), lengths.iter().map(|&l| per(l)).sum::<usize>());
+        let kept = Windows::new(&data, &c, true);
+        assert_eq!(kept.len(), per(20) + per(25));
+        assert!(
+            kept.index.iter().all(|&(start, _, _)| start != 20),
+            "episode 1 dropped"
+        );
+    }
+}

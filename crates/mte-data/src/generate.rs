@@ -90,6 +90,18 @@ impl Default for GenerateConfig {
 }
 
 impl GenerateConfig {
+    /// A new dataset in `out` for the observations this configuration records.
+    ///
+    /// # Errors
+    /// `out` already holds a dataset, or cannot be created.
+    pub fn writer(&self, out: &Path) -> Result<DatasetWriter, DataError> {
+        let image_hw = self
+            .obs
+            .pixels
+            .then_some((self.image_size.1, self.image_size.0));
+        DatasetWriter::create(out, 10.0, self.obs.keypoints, self.obs.state, image_hw)
+    }
+
     /// Check every field.
     pub fn validate(&self) -> Result<(), DataError> {
         if self.episodes == 0 {
@@ -207,6 +219,30 @@ pub fn record_expert<R: rand::Rng>(
     Ok((frames, max_coverage))
 }
 
+/// Runs `run(i)` for every `i` in `0..n` in parallel batches (twice the current rayon pool's
+/// threads) and hands the results to `sink` in index order, so what `sink` writes does not
+/// depend on the thread count; stops at the first error.
+///
+/// # Errors
+/// The first error of `run` or `sink`, in index order.
+pub fn in_order<T: Send, E: Send>(
+    n: usize,
+    run: impl Fn(usize) -> Result<T, E> + Sync,
+    mut sink: impl FnMut(T) -> Result<(), E>,
+) -> Result<(), E> {
+    let batch = (rayon::current_num_threads() * 2).max(1);
+    for first in (0..n).step_by(batch) {
+        let done: Vec<Result<T, E>> = (first..(first + batch).min(n))
+            .into_par_iter()
+            .map(&run)
+            .collect();
+        for result in done {
+            sink(result?)?;
+        }
+    }
+    Ok(())
+}
+
 /// Generate `config.episodes` expert demonstrations into `out` (a new directory), calling
 /// `on_episode` after each episode is written (in index order). Uses the current rayon pool.
 pub fn generate(
@@ -215,30 +251,16 @@ pub fn generate(
     on_episode: &(dyn Fn(&EpisodeMeta) + Sync),
 ) -> Result<Info, DataError> {
     config.validate()?;
-    let image_hw = config
-        .obs
-        .pixels
-        .then_some((config.image_size.1, config.image_size.0));
-    let mut writer =
-        DatasetWriter::create(out, 10.0, config.obs.keypoints, config.obs.state, image_hw)?;
-    let batch = (rayon::current_num_threads() * 2).max(1);
-    let mut next = 0;
-    while next < config.episodes {
-        let end = (next + batch).min(config.episodes);
-        let episodes: Vec<Result<Episode, DataError>> = (next..end)
-            .into_par_iter()
-            .map(|i| run_episode(config, i))
-            .collect();
-        for ep in episodes {
-            let ep = ep?;
+    let mut writer = config.writer(out)?;
+    in_order(
+        config.episodes,
+        |i| run_episode(config, i),
+        |ep| {
             writer.push_episode(ep.seed, ep.max_coverage, &ep.frames)?;
-        }
-        // Report after the batch is on disk.
-        for meta in &writer.episodes()[next..end] {
-            on_episode(meta);
-        }
-        next = end;
-    }
+            writer.episodes().last().into_iter().for_each(on_episode);
+            Ok(())
+        },
+    )?;
     let generator = serde_json::to_value(config).map_err(|e| DataError::Format {
         path: out.to_path_buf(),
         reason: e.to_string(),

@@ -25,6 +25,6 @@ pub mod stats;
 
 pub use dataset::{Dataset, EpisodeMeta, Feature, Info};
 pub use error::DataError;
-pub use generate::{GenerateConfig, ObsSet, generate, record_expert};
+pub use generate::{GenerateConfig, ObsSet, generate, in_order, record_expert};
 pub use sampler::{Window, WindowSampler};
 pub use stats::FeatureStats;

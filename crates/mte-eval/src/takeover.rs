@@ -15,10 +15,9 @@ use std::path::Path;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rayon::prelude::*;
 
-use mte_data::dataset::{DatasetWriter, Frame};
-use mte_data::{DataError, GenerateConfig, Info, record_expert};
+use mte_data::dataset::Frame;
+use mte_data::{DataError, GenerateConfig, Info, in_order, record_expert};
 use mte_policy::ChunkPolicy;
 use mte_sim::expert::Expert;
 
@@ -190,25 +189,20 @@ pub fn generate_takeover(
 ) -> Result<Info, TakeoverError> {
     config.validate()?;
     let r = &config.record;
-    let image_hw = r.obs.pixels.then_some((r.image_size.1, r.image_size.0));
-    let mut writer = DatasetWriter::create(out, 10.0, r.obs.keypoints, r.obs.state, image_hw)?;
-    let batch = (rayon::current_num_threads() * 2).max(1);
+    let mut writer = r.writer(out)?;
     let mut episodes = Vec::with_capacity(r.episodes);
-    for first in (0..r.episodes).step_by(batch) {
-        let end = (first + batch).min(r.episodes);
-        let done: Vec<_> = (first..end)
-            .into_par_iter()
-            .map(|i| run_one(policy, config, i))
-            .collect();
-        for result in done {
-            let (episode, frames) = result?;
+    in_order(
+        r.episodes,
+        |i| run_one(policy, config, i),
+        |(episode, frames)| {
             if !frames.is_empty() {
                 writer.push_episode(episode.seed, episode.max_coverage, &frames)?;
             }
             on_episode(&episode);
             episodes.push(episode);
-        }
-    }
+            Ok::<_, TakeoverError>(())
+        },
+    )?;
     let generator = serde_json::json!({
         "takeover": {
             "record": r,

@@ -74,11 +74,7 @@ pub fn load(
     config: &DiffusionConfig,
     extra: Extra,
 ) -> Result<TrainData, TrainDataError> {
-    let ds = Dataset::load(dir).map_err(|source| TrainDataError::Load {
-        dir: dir.to_path_buf(),
-        source,
-    })?;
-    from_dataset(&ds, config, extra)
+    load_many(&[dir.to_path_buf()], config, extra)
 }
 
 /// Loads the datasets at `dirs` as one ([`Dataset::concat`]: episodes in order, statistics

@@ -341,6 +341,11 @@ pub struct TrainDiffusionArgs {
     /// encoder.safetensors of `mte train encoder`, or a model.safetensors); ignored on resume.
     #[arg(long, value_name = "FILE")]
     pub init: Option<PathBuf>,
+    /// The n_obs_steps the --init weights were trained with, when fewer than this policy's
+    /// (set by --config): the U-Net's conditioning columns for the older observations start
+    /// at zero, so training starts from the init's policy exactly.
+    #[arg(long, value_name = "N", requires = "init")]
+    pub init_n_obs_steps: Option<usize>,
     /// Train only on the windows of successful episodes (e.g. corrective episodes in which
     /// the expert did not finish).
     #[arg(long)]

@@ -1161,4 +1161,34 @@ fn takeover_episodes_train_beside_demonstrations() {
         stats("first"),
         "statistics of both datasets"
     );
+
+    // A longer observation history from the same warm start (`--init-n-obs-steps`): the
+    // policy trains on 4 observations; without the flag the init's narrower conditioning is
+    // refused, naming the layer.
+    let tiny4 = p("tiny4.json");
+    fs::write(
+        &tiny4,
+        r#"{"down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8, "n_obs_steps": 4}"#,
+    )
+    .unwrap();
+    let wide = |out: &str, extra: &[&str]| {
+        let mut c = mte();
+        c.args(["train", "diffusion", "--steps", "1", "--batch-size", "4"])
+            .args(["--checkpoint-every", "0", "--config"])
+            .arg(&tiny4)
+            .arg("--data")
+            .arg(p("demos"))
+            .args(["--init", init])
+            .args(extra)
+            .arg("--out")
+            .arg(p(out))
+            .assert()
+    };
+    wide("wide", &["--init-n-obs-steps", "2"]).success();
+    let config: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(p("wide/config.json")).unwrap()).unwrap();
+    assert_eq!(config["n_obs_steps"], 4);
+    wide("narrow", &[])
+        .failure()
+        .stderr(predicate::str::contains("cond_encoder.1.weight"));
 }

@@ -11,7 +11,9 @@ use mte_policy::StatsMap;
 use mte_policy::config::{DiffusionConfig, ObsKind};
 use mte_policy::error::PolicyError;
 use mte_policy::pretrain::{EncoderPretrainConfig, pretrain_encoder};
-use mte_policy::train::{ENCODER_PREFIX, TrainConfig, TrainData, load_init, train};
+use mte_policy::train::{
+    ENCODER_PREFIX, HistoryWidening, TrainConfig, TrainData, load_init, load_init_widened, train,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -240,4 +242,104 @@ fn bad_inits_and_targets_are_typed_errors_naming_the_value() {
     )
     .expect_err("keypoint");
     assert!(e.to_string().contains("freeze_encoder"), "{e}");
+}
+
+/// A keypoint policy of the test's size conditioned on `t_o` observations.
+fn keypoints(t_o: usize) -> DiffusionConfig {
+    DiffusionConfig::cpu(ObsKind::Keypoints)
+        .with_overrides(&serde_json::json!({
+            "down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8,
+            "n_obs_steps": t_o
+        }))
+        .expect("valid")
+}
+
+fn keypoint_stats() -> StatsMap {
+    common::stats(&[
+        ("observation.state", 0.0, 512.0, 2),
+        ("observation.environment_state", 0.0, 512.0, 16),
+        ("action", 0.0, 512.0, 2),
+    ])
+}
+
+/// The noise prediction of `policy`'s U-Net at one timestep for `cond`.
+fn noise(policy: &mte_policy::DiffusionPolicy, cond: &Tensor) -> Tensor {
+    let x = common::randn(11, &[1, 16, 2], 1.0, DType::F32);
+    policy
+        .unet()
+        .expect("a U-Net")
+        .forward(&x, &[7], cond)
+        .expect("forward")
+}
+
+/// A warm start on a longer observation history (`init_n_obs_steps`): the widened policy
+/// predicts what the init predicts from the newest observations, whatever the older ones
+/// hold; the same file without the widening is refused, naming the layer.
+#[test]
+fn a_widened_init_predicts_from_the_newest_observations_as_the_init_did() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let policy = |t_o: usize, seed: u64, vm: &VarMap| {
+        let vb = mte_policy::init::seeded_var_builder(vm, seed, DType::F32, &Device::Cpu);
+        mte_policy::DiffusionPolicy::new(keypoints(t_o), keypoint_stats(), vb).expect("policy")
+    };
+    let (vm2, vm4) = (VarMap::new(), VarMap::new());
+    let short = policy(2, 1, &vm2);
+    let long = policy(4, 2, &vm4);
+    let path = dir.path().join("short.safetensors");
+    vm2.save(&path).expect("save");
+
+    let newest = common::randn(21, &[1, 36], 1.0, DType::F32);
+    let older = |seed| common::randn(seed, &[1, 36], 1.0, DType::F32);
+    let wide = |o: &Tensor| Tensor::cat(&[o, &newest], 1).expect("cat");
+    // Before the init the long policy is its own (the comparison below can fail).
+    assert!(max_abs_diff(&noise(&short, &newest), &noise(&long, &wide(&older(22)))) > 1e-3);
+
+    let e = load_init(&vm4, &path, &Device::Cpu).expect_err("unwidened");
+    assert!(e.to_string().contains("cond_encoder.1.weight"), "{e}");
+    let widen = HistoryWidening {
+        step_embed: 8,
+        from: 2,
+        to: 4,
+    };
+    load_init_widened(&vm4, &path, Some(widen), &Device::Cpu).expect("widened");
+    let reference = noise(&short, &newest);
+    for seed in [22, 23] {
+        let d = max_abs_diff(&reference, &noise(&long, &wide(&older(seed))));
+        // Zero columns add exact zeros; only the product's summation order (a longer inner
+        // dimension) differs: float32 rounding of sums of ~40 terms of order 1.
+        assert!(d < 1e-5, "older observations {seed}: {d}");
+    }
+    // An init history the weights cannot hold is a typed error naming the field.
+    let bad = HistoryWidening { from: 5, ..widen };
+    let e = load_init_widened(&vm4, &path, Some(bad), &Device::Cpu).expect_err("from > to");
+    assert!(e.to_string().contains("init_n_obs_steps"), "{e}");
+}
+
+/// `init_n_obs_steps` needs an init file and at most the policy's `n_obs_steps`.
+#[test]
+fn bad_init_histories_are_refused_before_training() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let init = dir.path().join("none.safetensors");
+    let cases = [
+        (Some(3), Some(init.clone()), "1..=2"),
+        (Some(1), None, "init file"),
+    ];
+    for (from, init, expected) in cases {
+        let tc = TrainConfig {
+            init,
+            init_n_obs_steps: from,
+            ..TrainConfig::default()
+        };
+        let e = train(
+            &config(),
+            &tc,
+            &data(),
+            dir.path(),
+            &Device::Cpu,
+            &no_progress,
+        )
+        .expect_err("refused");
+        assert!(matches!(e, PolicyError::Config { .. }), "{e:?}");
+        assert!(e.to_string().contains(expected), "{e}");
+    }
 }

@@ -1,6 +1,8 @@
 //! Scripted expert on the Diffusion Policy test seeds: `cargo run --release -p mte-sim
 //! --example expert_eval -- [FIRST_SEED] [N]`; `TRAVEL_STEP` and `PUSH_STEP` (px) set the
-//! expert's step sizes (defaults 45 and 8; the demonstrations used 20 and 6).
+//! expert's step sizes (defaults 45 and 8; the demonstrations used 20 and 6); `REPLAN=1` makes
+//! it plan afresh at every step (with `resume_pushes`), a controller whose action is a
+//! function of the state.
 #![allow(clippy::print_stdout, clippy::unwrap_used)]
 use mte_sim::{Expert, ExpertConfig, PushT, ResetStream};
 use rand::SeedableRng;
@@ -15,9 +17,11 @@ fn main() {
     let mut env = PushT::default();
     let travel = std::env::var("TRAVEL_STEP").map_or(45.0, |v| v.parse().unwrap());
     let push = std::env::var("PUSH_STEP").map_or(8.0, |v| v.parse().unwrap());
+    let replan = std::env::var("REPLAN").is_ok_and(|v| v == "1");
     let mut expert = Expert::new(ExpertConfig {
         travel_step: travel,
         push_step: push,
+        resume_pushes: replan,
         ..ExpertConfig::default()
     })
     .unwrap();
@@ -31,6 +35,9 @@ fn main() {
         let mut ok = false;
         let mut steps = 0;
         for _ in 0..300 {
+            if replan {
+                expert.reset();
+            }
             let a = expert.act(&env, &mut rng).unwrap();
             let info = env.step(a).unwrap();
             steps += 1;

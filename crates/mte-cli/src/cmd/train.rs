@@ -103,6 +103,7 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         seed: a.seed,
         checkpoint_every: a.checkpoint_every,
         init: a.init.clone(),
+        init_n_obs_steps: a.init_n_obs_steps,
         freeze_encoder: a.freeze_encoder,
         successful_only: a.successful_only,
         ..TrainConfig::default()

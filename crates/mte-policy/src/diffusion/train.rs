@@ -46,6 +46,13 @@ pub struct TrainConfig {
     /// be a variable of the policy with the same shape. Ignored when resuming.
     #[serde(default)]
     pub init: Option<PathBuf>,
+    /// The `n_obs_steps` the `init` weights were trained with, when it is fewer than this
+    /// policy's (U-Net only): each conditioning layer's columns for the older observations the
+    /// init never saw start at zero, and its own columns serve the newest observations, so
+    /// the policy starts as the init's exactly (it ignores the older frames until trained).
+    /// An mte extension, for testing longer observation histories from a warm start.
+    #[serde(default)]
+    pub init_n_obs_steps: Option<usize>,
     /// Keep the image encoder fixed: its variables are not optimised, and each frame's
     /// features are computed once (centre crop, as at evaluation) and reused, which makes a
     /// step cost about as much as a keypoint policy's. An mte extension for CPU training.
@@ -64,6 +71,7 @@ impl Default for TrainConfig {
             checkpoint_every: 2_000,
             successful_only: false,
             init: None,
+            init_n_obs_steps: None,
             freeze_encoder: false,
         }
     }
@@ -413,11 +421,12 @@ pub fn train(
             "an image policy (a keypoint policy has no encoder)",
         ));
     }
+    let widen = widening(config, train)?;
     let t0 = std::time::Instant::now();
     let varmap = VarMap::new();
     let vb = crate::init::seeded_var_builder(&varmap, train.seed, DType::F32, device);
     let policy = DiffusionPolicy::new(config.clone(), data.stats.clone(), vb)?;
-    let (mut step, mut ema) = start_or_resume(&varmap, train, out, device)?;
+    let (mut step, mut ema) = start_or_resume(&varmap, train, widen, out, device)?;
     // Every variable (EMA, checkpoints) and the optimised ones (all but a frozen encoder).
     let all_vars = sorted_vars(&varmap, |_| true)?;
     let vars: Vec<(String, Var)> = all_vars
@@ -561,13 +570,14 @@ fn batch_loss(
 fn start_or_resume(
     varmap: &VarMap,
     train: &TrainConfig,
+    widen: Option<HistoryWidening>,
     out: &Path,
     device: &Device,
 ) -> Result<(usize, Option<HashMap<String, Tensor>>), PolicyError> {
     let state_path = out.join("training_state.json");
     if !state_path.exists() {
         if let Some(init) = &train.init {
-            load_init(varmap, init, device)?;
+            load_init_widened(varmap, init, widen, device)?;
         }
         let ema = match train.ema_max_decay {
             Some(_) => Some(
@@ -757,7 +767,100 @@ pub(crate) fn sorted_vars(
 /// Set the variables of `varmap` named in the safetensors file `path` to its tensors; a key
 /// the model lacks or a shape that differs is an error naming it.
 pub fn load_init(varmap: &VarMap, path: &Path, device: &Device) -> Result<usize, PolicyError> {
-    let tensors = candle_core::safetensors::load(path, device)?;
+    load_init_widened(varmap, path, None, device)
+}
+
+/// An init trained on `from` observations loaded into a U-Net conditioned on `to` of them
+/// ([`TrainConfig::init_n_obs_steps`]). The conditioning is `[step embedding (step_embed),
+/// observation 1, ..., observation to]`, oldest first, `per_step` values each.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct HistoryWidening {
+    /// `diffusion_step_embed_dim`.
+    pub step_embed: usize,
+    /// The init's `n_obs_steps`.
+    pub from: usize,
+    /// The policy's `n_obs_steps`.
+    pub to: usize,
+}
+
+impl HistoryWidening {
+    /// The conditioning layer weight `(out, step_embed + from * per_step)` of the init as
+    /// `(out, step_embed + to * per_step)`: zero columns for the `to - from` oldest
+    /// observations, the init's columns for the newest `from`.
+    pub fn widen(&self, w: &Tensor) -> Result<Tensor, PolicyError> {
+        let (out, cols) = w.dims2()?;
+        let obs_cols = cols.checked_sub(self.step_embed).unwrap_or(usize::MAX);
+        if self.from == 0 || self.to < self.from || obs_cols % self.from != 0 {
+            return Err(config_err(
+                "init_n_obs_steps",
+                format!("{} for a conditioning weight of {cols} columns", self.from),
+                "the n_obs_steps the init was trained with (step embedding + n_obs_steps x \
+                 per-step features columns), at most the policy's",
+            ));
+        }
+        let extra = (self.to - self.from) * (obs_cols / self.from);
+        let zeros = Tensor::zeros((out, extra), w.dtype(), w.device())?;
+        let parts = [
+            &w.narrow(1, 0, self.step_embed)?,
+            &zeros,
+            &w.narrow(1, self.step_embed, obs_cols)?,
+        ];
+        Ok(Tensor::cat(&parts, 1)?)
+    }
+}
+
+/// The widening `train` asks for, checked against `config`.
+fn widening(
+    config: &DiffusionConfig,
+    train: &TrainConfig,
+) -> Result<Option<HistoryWidening>, PolicyError> {
+    let Some(from) = train.init_n_obs_steps else {
+        return Ok(None);
+    };
+    if train.init.is_none() {
+        return Err(config_err(
+            "init_n_obs_steps",
+            from,
+            "only with an init file",
+        ));
+    }
+    if config.transformer.is_some() {
+        return Err(config_err(
+            "init_n_obs_steps",
+            from,
+            "a U-Net policy (the transformer's condition tokens are not widened)",
+        ));
+    }
+    if from == 0 || from > config.n_obs_steps {
+        return Err(config_err(
+            "init_n_obs_steps",
+            from,
+            format!("1..={} (the policy's n_obs_steps)", config.n_obs_steps),
+        ));
+    }
+    Ok(Some(HistoryWidening {
+        step_embed: config.diffusion_step_embed_dim,
+        from,
+        to: config.n_obs_steps,
+    }))
+}
+
+/// [`load_init`], the U-Net's conditioning layers (`…cond_encoder.1.weight`) widened by
+/// `widen` when given.
+pub fn load_init_widened(
+    varmap: &VarMap,
+    path: &Path,
+    widen: Option<HistoryWidening>,
+    device: &Device,
+) -> Result<usize, PolicyError> {
+    let mut tensors = candle_core::safetensors::load(path, device)?;
+    if let Some(w) = widen {
+        for (name, t) in tensors.iter_mut() {
+            if name.ends_with("cond_encoder.1.weight") {
+                *t = w.widen(t)?;
+            }
+        }
+    }
     let vars = varmap
         .data()
         .lock()

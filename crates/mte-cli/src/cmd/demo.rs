@@ -11,7 +11,7 @@ use mte_sim::ResetStream;
 use crate::args::{Cli, DemoArgs};
 
 /// Where the bundled policy lives in the repository.
-const BUNDLED: &str = "assets/policies/pusht_keypoints_cpu_v3";
+const BUNDLED: &str = "assets/policies/pusht_keypoints_cpu_v4";
 
 /// The bundled policy: relative to the working directory, else to the source tree.
 fn bundled_policy() -> PathBuf {

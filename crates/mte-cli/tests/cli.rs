@@ -1130,15 +1130,18 @@ fn takeover_episodes_train_beside_demonstrations() {
         r#"{"down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8}"#,
     )
     .unwrap();
-    let train = |out: &str, data: &[&str], extra: &[&str]| {
+    let train_with = |config: &std::path::Path, out: &str, data: &[&str], extra: &[&str]| {
         let mut c = mte();
         c.args(["train", "diffusion", "--steps", "1", "--batch-size", "4"])
             .args(["--checkpoint-every", "0", "--config"])
-            .arg(&tiny);
+            .arg(config);
         for d in data {
             c.arg("--data").arg(p(d));
         }
-        c.args(extra).arg("--out").arg(p(out)).assert().success();
+        c.args(extra).arg("--out").arg(p(out)).assert()
+    };
+    let train = |out: &str, data: &[&str], extra: &[&str]| {
+        train_with(&tiny, out, data, extra).success();
     };
     let stats = |ckpt: &str| {
         fs::read(p(ckpt).join("policy_preprocessor_step_3_normalizer_processor.safetensors"))
@@ -1172,17 +1175,8 @@ fn takeover_episodes_train_beside_demonstrations() {
     )
     .unwrap();
     let wide = |out: &str, extra: &[&str]| {
-        let mut c = mte();
-        c.args(["train", "diffusion", "--steps", "1", "--batch-size", "4"])
-            .args(["--checkpoint-every", "0", "--config"])
-            .arg(&tiny4)
-            .arg("--data")
-            .arg(p("demos"))
-            .args(["--init", init])
-            .args(extra)
-            .arg("--out")
-            .arg(p(out))
-            .assert()
+        let init = [&["--init", init][..], extra].concat();
+        train_with(&tiny4, out, &["demos"], &init)
     };
     wide("wide", &["--init-n-obs-steps", "2"]).success();
     let config: serde_json::Value =

@@ -313,6 +313,12 @@ fn a_widened_init_predicts_from_the_newest_observations_as_the_init_did() {
     let bad = HistoryWidening { from: 5, ..widen };
     let e = load_init_widened(&vm4, &path, Some(bad), &Device::Cpu).expect_err("from > to");
     assert!(e.to_string().contains("init_n_obs_steps"), "{e}");
+    // A weight narrower than the step embedding alone, likewise.
+    let narrow = Tensor::zeros((4, 3), DType::F32, &Device::Cpu).expect("zeros");
+    let e = widen
+        .widen(&narrow)
+        .expect_err("narrower than the embedding");
+    assert!(e.to_string().contains("3 columns"), "{e}");
 }
 
 /// `init_n_obs_steps` needs an init file and at most the policy's `n_obs_steps`.

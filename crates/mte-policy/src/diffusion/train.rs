@@ -789,15 +789,15 @@ impl HistoryWidening {
     /// observations, the init's columns for the newest `from`.
     pub fn widen(&self, w: &Tensor) -> Result<Tensor, PolicyError> {
         let (out, cols) = w.dims2()?;
-        let obs_cols = cols.checked_sub(self.step_embed).unwrap_or(usize::MAX);
-        if self.from == 0 || self.to < self.from || obs_cols % self.from != 0 {
+        let fits = |c: &usize| self.from > 0 && self.to >= self.from && c.is_multiple_of(self.from);
+        let Some(obs_cols) = cols.checked_sub(self.step_embed).filter(fits) else {
             return Err(config_err(
                 "init_n_obs_steps",
                 format!("{} for a conditioning weight of {cols} columns", self.from),
                 "the n_obs_steps the init was trained with (step embedding + n_obs_steps x \
                  per-step features columns), at most the policy's",
             ));
-        }
+        };
         let extra = (self.to - self.from) * (obs_cols / self.from);
         let zeros = Tensor::zeros((out, extra), w.dtype(), w.device())?;
         let parts = [

@@ -4,6 +4,9 @@ signed-rank p-value (scipy's rules) over the seeds both cells ran.
 
     python tools/paired_cells.py RUN CELL_A CELL_B [CELL_C ...]   # every cell against CELL_A
 
+A cell written `OTHER_RUN::CELL` is read from another run directory (runs of one policy on the
+same seeds and noise seed pair by seed across runs, as within one).
+
 Needs numpy and scipy (tools/reference/requirements-stats.txt).
 """
 import json
@@ -15,6 +18,8 @@ from scipy import stats
 
 
 def load(run, cell):
+    if "::" in cell:
+        run, cell = cell.split("::", 1)
     out = {}
     for line in (pathlib.Path(run) / "cells" / f"{cell}.jsonl").read_text().splitlines():
         r = json.loads(line)

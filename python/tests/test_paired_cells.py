@@ -40,3 +40,16 @@ def test_paired_difference_and_wilcoxon(tmp_path, capsys):
     assert f"{d.mean():+.3f} ± {d.std(ddof=1) / np.sqrt(20):.3f}" in row
     assert f"{p:.2g}" in row
     assert "| 20 |" in row
+
+
+def test_a_cell_of_another_run_pairs_by_seed(tmp_path, capsys):
+    for run in ("one", "two"):
+        (tmp_path / run / "cells").mkdir(parents=True)
+    a = {s: 0.5 for s in range(6)}
+    b = {s: 0.5 + 0.1 * (s % 2) for s in range(8)}
+    write_cell(tmp_path / "one", "base", {"median": a})
+    write_cell(tmp_path / "two", "other", {"median": b})
+    load_tool().main(str(tmp_path / "one"), "base", f"{tmp_path / 'two'}::other")
+    row = [line for line in capsys.readouterr().out.splitlines() if "other`" in line][0]
+    assert "| 6 |" in row, "only the seeds both cells ran"
+    assert "+0.050" in row

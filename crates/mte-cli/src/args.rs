@@ -174,6 +174,10 @@ pub struct EvalPolicyArgs {
     /// observations), an analysis control for the clean-data confound.
     #[arg(long, value_enum, default_value_t = SamplingArg::Independent)]
     pub sampling: SamplingArg,
+    /// Use only the first N executable rows of each chunk (from row T_o - 1), as for a
+    /// policy predicting fewer rows: fewer candidates per step. Default: all of them.
+    #[arg(long)]
+    pub span: Option<usize>,
     /// Where the policy runs: `cpu`, or `cuda` / `cuda:N` in a build with the `cuda` feature.
     #[arg(long, default_value = "cpu")]
     pub device: mte_policy::ComputeDevice,

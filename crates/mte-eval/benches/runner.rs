@@ -72,6 +72,7 @@ fn episode_300_steps(bencher: divan::Bencher, arm: &str) {
         noise_seed: 0,
         sampling: Default::default(),
         monitors: &[],
+        span: None,
     };
     bencher.bench_local(|| run_episode(&Fixed, &spec).expect("episode"));
 }

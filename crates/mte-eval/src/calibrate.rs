@@ -101,6 +101,7 @@ fn cell(
                 noise_seed: spec.noise_seed,
                 sampling: Default::default(),
                 monitors: &[],
+                span: None,
             };
             let r = run_episode(policy, &ep)?;
             reporter.advance(1);

@@ -139,6 +139,12 @@ pub struct EpisodeSpec<'a> {
     pub sampling: Sampling,
     /// Runtime monitors scoring every query (passive: they never change an action).
     pub monitors: &'a [MonitorKind],
+    /// Executable rows of each chunk the runner uses, counted from row `T_o - 1`; `None`:
+    /// all `T_p - T_o + 1` of them. Fewer rows means fewer candidates per control step
+    /// (`M_min = floor(span / h)`), as for a policy predicting only `T_o - 1 + span` rows:
+    /// the control that separates a longer observation history (which shortens the span)
+    /// from the candidate count it brings.
+    pub span: Option<usize>,
 }
 
 /// ACC's range floor for PushT, in pixels: the spec's 1e-3 in LeRobot's normalised action
@@ -641,6 +647,23 @@ impl Pending {
     }
 }
 
+/// The rows of each chunk an episode uses: `T_o - 1 + span` of the policy's `t_p`.
+///
+/// # Errors
+/// [`RolloutError::Config`] naming `span` unless `1 <= span <= t_p - t_o + 1`.
+pub fn used_horizon(t_p: usize, t_o: usize, span: Option<usize>) -> Result<usize, RolloutError> {
+    let full = (t_p + 1).saturating_sub(t_o);
+    match span {
+        None => Ok(t_p),
+        Some(s) if (1..=full).contains(&s) => Ok(t_o - 1 + s),
+        Some(s) => Err(RolloutError::Config {
+            field: "span",
+            value: s.to_string(),
+            expected: format!("1..={full} (the policy's executable rows, T_p - T_o + 1)"),
+        }),
+    }
+}
+
 impl<'e, 's> Episode<'e, 's> {
     /// Checks the spec, resets the environment and builds the arm's executor.
     pub(crate) fn new(
@@ -649,7 +672,8 @@ impl<'e, 's> Episode<'e, 's> {
         spec: &'s EpisodeSpec<'s>,
         w: &mut Watchers<'_>,
     ) -> Result<Self, RolloutError> {
-        let (t_p, t_o, d) = (policy.horizon(), policy.n_obs_steps(), policy.action_dim());
+        let (t_o, d) = (policy.n_obs_steps(), policy.action_dim());
+        let t_p = used_horizon(policy.horizon(), t_o, spec.span)?;
         let h = spec.h;
         if h == 0 || h + t_o > t_p + 1 {
             return Err(RolloutError::Config {
@@ -781,6 +805,10 @@ impl<'e, 's> Episode<'e, 's> {
     ) -> Result<QueryEvent<'_>, RolloutError> {
         let (steps, corrupted) = (self.steps, p.corrupted);
         self.chunk = chunk;
+        // A shortened span keeps the chunk's first rows (a longer chunk only: a wrong
+        // length stays the ensembler's typed error).
+        self.chunk
+            .truncate(self.chunk.len().min(self.geometry.t_p * self.out.len()));
         // Common-mode bias acts while the newest query is corrupted.
         if let CandidateFault::CommonMode(s) = &mut self.candidate_fault {
             s.on = corrupted;

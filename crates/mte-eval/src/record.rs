@@ -40,6 +40,10 @@ pub struct CellSpec {
     pub seeds: Vec<u64>,
     /// Step limit per episode.
     pub max_steps: usize,
+    /// Executable rows of each chunk the runner uses ([`crate::pusht::EpisodeSpec::span`]);
+    /// absent: all of them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub span: Option<usize>,
 }
 
 impl CellSpec {

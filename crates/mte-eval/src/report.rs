@@ -1558,6 +1558,7 @@ mod tests {
             arms: vec![EWM.into(), MEDIAN.into()],
             seeds: SEEDS.to_vec(),
             max_steps: 300,
+            span: None,
         }
     }
 

@@ -368,6 +368,7 @@ mod tests {
                 arms: vec!["median".into()],
                 seeds: vec![1, 2],
                 max_steps: 10,
+                span: None,
             }],
             machines: vec![machine("cpu A")],
         }

@@ -147,6 +147,11 @@ pub struct SweepSpec {
     /// `tools/env-setup`).
     #[serde(default, skip_serializing_if = "EnvTarget::is_pusht")]
     pub env: EnvTarget,
+    /// Spans: executable rows of each chunk the runner uses, counted from row `T_o - 1`
+    /// ([`crate::pusht::EpisodeSpec::span`]), one cell per span (ids get `-span<N>`);
+    /// empty (the default): all `T_p - T_o + 1` rows.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub span: Vec<usize>,
 }
 
 fn default_max_steps() -> usize {
@@ -214,6 +219,14 @@ impl SweepSpec {
         if self.max_steps == 0 {
             return Err(field("max_steps", 0, "at least 1"));
         }
+        let longest = self.h.iter().copied().max().unwrap_or(1);
+        if let Some(s) = self.span.iter().find(|&&s| s < longest) {
+            return Err(field(
+                "span",
+                s,
+                format!("at least every stride (the longest is {longest}; no uncovered time)"),
+            ));
+        }
         if self.corruptions.is_empty() {
             return Err(field("corruptions", "[]", "at least one entry"));
         }
@@ -275,16 +288,21 @@ impl SweepSpec {
         let mut cells: Vec<CellSpec> = Vec::new();
         for p in &self.policies {
             let label = policy_label(p).to_string();
-            for &h in &self.h {
+            for (span, &h) in self
+                .spans()
+                .into_iter()
+                .flat_map(|s| self.h.iter().map(move |h| (s, h)))
+            {
                 let mut push = |corruption: CorruptionSpec| {
                     cells.push(CellSpec {
-                        id: slug(&format!("{label}-{corruption}-h{h}")),
+                        id: slug(&format!("{label}-{corruption}-h{h}{}", span_suffix(span))),
                         policy: p.clone(),
                         corruption,
                         h,
                         arms: self.arms.clone(),
                         seeds: seeds.clone(),
                         max_steps: self.max_steps,
+                        span,
                     });
                 };
                 for c in &self.corruptions {
@@ -312,6 +330,15 @@ impl SweepSpec {
             }
         }
         cells
+    }
+
+    /// The spans of the grid: `None` (every executable row) when the spec names none.
+    fn spans(&self) -> Vec<Option<usize>> {
+        if self.span.is_empty() {
+            vec![None]
+        } else {
+            self.span.iter().copied().map(Some).collect()
+        }
     }
 
     /// The manifest of a new run of this spec.
@@ -612,7 +639,9 @@ fn load_policies<'c>(
     }
     for c in cells {
         if let Some(Ok(p)) = loaded.get(c.policy.as_str()) {
-            check_burst(c, p.horizon(), p.n_obs_steps())?;
+            let t_p = crate::pusht::used_horizon(p.horizon(), p.n_obs_steps(), c.span)
+                .map_err(|e| field("span", format!("{:?}", c.span), e.to_string()))?;
+            check_burst(c, t_p, p.n_obs_steps())?;
         }
     }
     Ok(loaded)
@@ -660,6 +689,7 @@ impl TaskContext<'_> {
                 noise_seed: self.noise_seed,
                 sampling: Default::default(),
                 monitors: &self.spec.monitors,
+                span: c.span,
             })
             .collect();
         let mut ran = 0;
@@ -807,6 +837,11 @@ fn check_burst(c: &CellSpec, t_p: usize, t_o: usize) -> Result<(), SweepError> {
         ));
     }
     Ok(())
+}
+
+/// A cell id's span part: `-span<N>`, or nothing for the full span.
+fn span_suffix(span: Option<usize>) -> String {
+    span.map_or(String::new(), |s| format!("-span{s}"))
 }
 
 fn poisoned() -> SweepError {

@@ -142,6 +142,7 @@ fn run_one(
         noise_seed: config.noise_seed,
         sampling: Sampling::Independent,
         monitors: &[],
+        span: None,
     };
     let mut env = PushTEnv::new(r.stream);
     let record = run_episode_in(&mut env, policy, &spec, &mut NoObserver).map_err(|source| {

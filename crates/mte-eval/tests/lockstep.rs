@@ -170,6 +170,7 @@ fn align(
         noise_seed: 0,
         sampling: Default::default(),
         monitors: &[],
+        span: None,
     };
     Ok(mte_eval::alignment::alignment(policy.as_ref(), &[spec])?)
 }

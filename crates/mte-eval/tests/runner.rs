@@ -93,6 +93,7 @@ fn spec<'a>(execution: Execution, corruption: &'a CorruptionSpec, h: usize) -> E
         noise_seed: 7,
         sampling: Default::default(),
         monitors: &[],
+        span: None,
     }
 }
 
@@ -300,6 +301,91 @@ fn bad_stride_is_a_typed_error() {
     assert!(e.is_err_and(|e| e.to_string().contains("`h` = 16")));
 }
 
+/// The first `rows` rows of `Scripted`'s chunks: a policy that predicts fewer rows.
+struct Shortened(Scripted, usize);
+
+impl ChunkPolicy for Shortened {
+    fn horizon(&self) -> usize {
+        self.1
+    }
+    fn needs(&self) -> ObsNeeds {
+        NEEDS
+    }
+    fn n_obs_steps(&self) -> usize {
+        2
+    }
+    fn action_dim(&self) -> usize {
+        2
+    }
+    fn predict_chunk(
+        &self,
+        history: &[Observation],
+        rng: &mut dyn RngCore,
+    ) -> Result<Vec<f32>, PolicyError> {
+        let mut c = self.0.predict_chunk(history, rng)?;
+        c.truncate(self.1 * 2);
+        Ok(c)
+    }
+}
+
+#[test]
+fn a_shorter_span_is_a_policy_predicting_fewer_rows() -> TestResult {
+    let blank = blank_burst(2);
+    for (execution, corruption) in [
+        (
+            Execution::Ensemble("ewm:0.01".parse()?),
+            &CorruptionSpec::CLEAN,
+        ),
+        (Execution::Ensemble("median".parse()?), &blank),
+        (Execution::OpenLoop, &CorruptionSpec::CLEAN),
+    ] {
+        let base = spec(execution, corruption, 2);
+        let spanned = EpisodeSpec {
+            span: Some(13),
+            ..base
+        };
+        let a = run_episode(&Scripted::new(900.0), &spanned)?;
+        let b = run_episode(&Shortened(Scripted::new(900.0), 14), &base)?;
+        let key = |r: &EpisodeRecord| {
+            let cov = r.max_coverage.to_bits();
+            (cov, r.steps, r.m_counts.clone(), r.q_counts.clone())
+        };
+        assert_eq!(key(&a), key(&b), "{execution}");
+        // The full span is the default.
+        let full = EpisodeSpec {
+            span: Some(15),
+            ..base
+        };
+        let c = run_episode(&Scripted::new(900.0), &full)?;
+        let d = run_episode(&Scripted::new(900.0), &base)?;
+        assert_eq!(key(&c), key(&d), "{execution}");
+        if execution != Execution::OpenLoop {
+            // At h = 2, 13 rows give 6-7 candidates, 15 give 7-8.
+            assert_eq!((a.m_counts.len(), d.m_counts.len()), (8, 9), "{execution}");
+        }
+    }
+    for bad in [0, 16] {
+        let s = EpisodeSpec {
+            span: Some(bad),
+            ..spec(Execution::OpenLoop, &CorruptionSpec::CLEAN, 2)
+        };
+        let e = run_episode(&Scripted::new(0.0), &s).expect_err("span out of range");
+        let msg = e.to_string();
+        assert!(
+            msg.contains("`span`") && msg.contains(&bad.to_string()),
+            "{msg}"
+        );
+        assert!(msg.contains("1..=15"), "{msg}");
+    }
+    let s = EpisodeSpec {
+        span: Some(3),
+        ..spec(Execution::OpenLoop, &CorruptionSpec::CLEAN, 4)
+    };
+    let e = run_episode(&Scripted::new(0.0), &s).expect_err("stride past the span");
+    assert!(e.to_string().contains("`h` = 4"), "{e}");
+    Ok(())
+}
+
 struct Source;
 
 impl PolicySource for Source {
@@ -326,6 +412,61 @@ max_steps = 40
 fault = { kind = "blank" }
 q = [0, 2]
 "#;
+
+#[test]
+fn a_sweep_s_span_names_its_cells_and_reaches_every_episode() -> TestResult {
+    let text = SPEC.replace("max_steps = 40", "max_steps = 40\nspan = [13]");
+    let spec = SweepSpec::from_toml(&text)?;
+    let cells = spec.cells();
+    assert!(
+        cells
+            .iter()
+            .all(|c| c.id.ends_with("-h2-span13") && c.span == Some(13))
+    );
+    let manifest = spec.manifest(None, 0);
+    let dir = tempfile::tempdir()?;
+    let rd = RunDir::create(&dir.path().join("run"), &spec.to_toml()?, &manifest, false)?;
+    run(
+        &spec,
+        &manifest,
+        &rd,
+        "0/1".parse()?,
+        RunOptions::new(1),
+        &Source,
+        &Silent,
+    )?;
+    let lines = read_lines(&rd.cell_path(&cells[0].id))?;
+    let m_lens: Vec<usize> = lines
+        .iter()
+        .filter_map(|l| match l {
+            Line::Episode(e) => Some(e.m_counts.len()),
+            Line::Error(_) => None,
+        })
+        .collect();
+    assert_eq!(
+        m_lens,
+        vec![8; 4],
+        "at most 7 candidates from 13 rows at h = 2"
+    );
+    let short = SweepSpec::from_toml(&SPEC.replace("max_steps = 40", "max_steps = 40\nspan = [1]"));
+    let e = short.expect_err("a span shorter than the stride");
+    assert!(e.to_string().contains("`span` = 1"), "{e}");
+    let long = SweepSpec::from_toml(&text.replace("span = [13]", "span = [16]"))?;
+    let m = long.manifest(None, 0);
+    let rd = RunDir::create(&dir.path().join("long"), &long.to_toml()?, &m, false)?;
+    let e = run(
+        &long,
+        &m,
+        &rd,
+        "0/1".parse()?,
+        RunOptions::new(1),
+        &Source,
+        &Silent,
+    );
+    let e = e.expect_err("a span past the policy's executable rows");
+    assert!(e.to_string().contains("1..=15"), "{e}");
+    Ok(())
+}
 
 #[test]
 fn sweeps_record_every_episode_resume_and_shard() -> TestResult {

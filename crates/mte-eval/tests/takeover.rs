@@ -98,6 +98,7 @@ fn the_expert_records_from_the_state_the_policy_reached() {
             noise_seed: c.noise_seed,
             sampling: Sampling::Independent,
             monitors: &[],
+            span: None,
         };
         let mut env = PushTEnv::new(c.record.stream);
         let r = run_episode_in(&mut env, &p, &spec, &mut NoObserver).expect("episode");

@@ -52,6 +52,7 @@ pub fn alignment(cli: &Cli, a: &crate::args::AlignmentArgs) -> Result<()> {
             noise_seed: 0,
             sampling: Default::default(),
             monitors: &[],
+            span: None,
         })
         .collect();
     let t0 = std::time::Instant::now();

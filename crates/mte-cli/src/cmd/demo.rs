@@ -54,6 +54,7 @@ pub fn run(cli: &Cli, a: &DemoArgs) -> Result<()> {
         }],
         monitors: Vec::new(),
         env: Default::default(),
+        span: Vec::new(),
     };
     spec.validate().context("check the demo flags")?;
     let t0 = std::time::Instant::now();

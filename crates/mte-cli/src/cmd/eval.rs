@@ -54,6 +54,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
             noise_seed: a.noise_seed,
             sampling: a.sampling.into(),
             monitors: &[],
+            span: a.span,
         };
         let record = match bridged.as_mut() {
             None => run_episode_observed(p.as_ref(), &spec, &mut spread)?,

@@ -54,6 +54,7 @@ pub fn shoot(s: &Shoot<'_>) -> Result<[Film; 2]> {
             noise_seed: s.noise_seed,
             sampling: Default::default(),
             monitors: &[],
+            span: None,
         };
         Ok(film(p.as_ref(), &spec, s.size)?)
     };

@@ -246,6 +246,7 @@ fn episode(execution: Execution) -> EpisodeSpec<'static> {
         noise_seed: 0,
         sampling: Default::default(),
         monitors: &[],
+        span: None,
     }
 }
 

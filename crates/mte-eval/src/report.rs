@@ -1511,9 +1511,9 @@ fn arms_of(cells: &[CellData<'_>], members: &[usize]) -> Vec<String> {
 /// The clean cell of the same policy and h as cell `ci`.
 fn clean_of(cells: &[CellData<'_>], ci: usize) -> Option<usize> {
     let s = cells[ci].spec;
-    cells
-        .iter()
-        .position(|c| c.is_clean() && c.spec.policy == s.policy && c.spec.h == s.h)
+    cells.iter().position(|c| {
+        c.is_clean() && c.spec.policy == s.policy && c.spec.h == s.h && c.spec.span == s.span
+    })
 }
 
 #[cfg(test)]
@@ -1893,6 +1893,74 @@ mod tests {
             "{}",
             notes[0]
         );
+    }
+
+    #[test]
+    fn a_corrupted_cell_takes_the_clean_cell_of_its_own_span_and_spans_make_a_curve() {
+        const CLEAN13: &str = "pusht_keypoints-clean-h2-span13";
+        const Q1_13: &str = "pusht_keypoints-blank-burst-q1-h2-span13";
+        let mut m = manifest();
+        for (id, c) in [(CLEAN13, CorruptionSpec::CLEAN), (Q1_13, blank(1))] {
+            m.cells.push(CellSpec {
+                span: Some(13),
+                ..cell(id, c)
+            });
+        }
+        let mut l = lines();
+        for x in lines() {
+            if let Line::Episode(mut e) = x
+                && (e.cell == CLEAN || e.cell == Q1)
+            {
+                // The shortened span's clean cell scores 0.1 less under every arm.
+                let clean = e.cell == CLEAN;
+                e.cell = if clean { CLEAN13 } else { Q1_13 }.into();
+                e.max_coverage -= if clean { 0.1 } else { 0.0 };
+                l.push(Line::Episode(e));
+            }
+        }
+        let r = build(&m, &l, &ReportOptions::default()).unwrap();
+        let clean_mean = |id: &str| row(&r, id).clean.as_ref().expect("clean").coverage.mean;
+        let full: f64 = CLEAN_EWM.iter().sum::<f64>() / CLEAN_EWM.len() as f64;
+        assert!((clean_mean(Q1) - full).abs() < 1e-12);
+        assert!((clean_mean(Q1_13) - (full - 0.1)).abs() < 1e-12);
+        // One span is no curve; a second clean span makes the clean-coverage-against-span
+        // plot, one series per arm, points in span order.
+        assert!(!r.plots.iter().any(|p| p.name.starts_with("span-")));
+        m.cells.push(CellSpec {
+            span: Some(6),
+            ..cell("pusht_keypoints-clean-h2-span6", CorruptionSpec::CLEAN)
+        });
+        for x in lines() {
+            if let Line::Episode(mut e) = x
+                && e.cell == CLEAN
+            {
+                e.cell = "pusht_keypoints-clean-h2-span6".into();
+                l.push(Line::Episode(e));
+            }
+        }
+        let r = build(&m, &l, &ReportOptions::default()).unwrap();
+        let spans: Vec<&Plot> = r
+            .plots
+            .iter()
+            .filter(|p| p.name.starts_with("span-"))
+            .collect();
+        assert_eq!(
+            spans.len(),
+            1,
+            "{:?}",
+            r.plots.iter().map(|p| &p.name).collect::<Vec<_>>()
+        );
+        let ewm = spans[0]
+            .spec
+            .series
+            .iter()
+            .find(|s| s.label == EWM)
+            .expect("ewm");
+        let xy: Vec<(f64, f64)> = ewm.points.iter().map(|p| (p.x, p.y)).collect();
+        assert_eq!(xy.len(), 2);
+        assert_eq!((xy[0].0, xy[1].0), (6.0, 13.0));
+        assert!((xy[0].1 - full).abs() < 1e-12 && (xy[1].1 - (full - 0.1)).abs() < 1e-12);
+        assert_eq!(spans[0].spec.series.len(), 2, "both arms");
     }
 
     #[test]

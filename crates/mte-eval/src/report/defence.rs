@@ -108,22 +108,26 @@ pub(super) fn build(
             });
         }
     }
-    let find = |name: &str, corruption: &str, h: usize| {
+    let find = |name: &str, corruption: &str, h: usize, span: Option<usize>| {
         cells.iter().find(|c| {
-            is_policy(c, name) && c.spec.h == h && c.spec.corruption.to_string() == corruption
+            is_policy(c, name)
+                && c.spec.h == h
+                && c.spec.span == span
+                && c.spec.corruption.to_string() == corruption
         })
     };
-    let clean = |name: &str, h: usize, arm: &str| match find(name, "clean", h) {
-        Some(c) => clean_ref(c, arm),
-        None => Ok(None),
-    };
+    let clean =
+        |name: &str, h: usize, span: Option<usize>, arm: &str| match find(name, "clean", h, span) {
+            Some(c) => clean_ref(c, arm),
+            None => Ok(None),
+        };
     let mut rows = Vec::new();
     for d in cells
         .iter()
         .filter(|c| !c.is_clean() && is_policy(c, &pair.defended))
     {
         let corruption = d.spec.corruption.to_string();
-        let Some(u) = find(&pair.undefended, &corruption, d.spec.h) else {
+        let Some(u) = find(&pair.undefended, &corruption, d.spec.h, d.spec.span) else {
             notes.push(format!(
                 "defence table: no cell of `{}` with corruption {corruption} and h = {} for `{}`",
                 pair.undefended, d.spec.h, d.spec.id
@@ -147,12 +151,17 @@ pub(super) fn build(
             } else {
                 None
             };
-            let undefended_clean = clean(&pair.undefended, d.spec.h, arm)?;
-            let den = denominator(u, find(&pair.undefended, "clean", d.spec.h), arm)?;
-            let defended_clean = clean(&pair.defended, d.spec.h, arm)?;
+            let undefended_clean = clean(&pair.undefended, d.spec.h, d.spec.span, arm)?;
+            let den = denominator(
+                u,
+                find(&pair.undefended, "clean", d.spec.h, d.spec.span),
+                arm,
+            )?;
+            let defended_clean = clean(&pair.defended, d.spec.h, d.spec.span, arm)?;
             let no_eps: &[&EpisodeRecord] = &[];
-            let on_clean =
-                |name: &str| find(name, "clean", d.spec.h).map_or(no_eps, |c| c.episodes(arm));
+            let on_clean = |name: &str| {
+                find(name, "clean", d.spec.h, d.spec.span).map_or(no_eps, |c| c.episodes(arm))
+            };
             let recovered = recovered(
                 RecoveryEpisodes {
                     clean: on_clean(&pair.undefended),

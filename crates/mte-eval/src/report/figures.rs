@@ -23,6 +23,65 @@ pub(super) fn plots(
         defence,
     };
     specs.extend(recovered_plots(&ctx, corrupted, &mut taken)?);
+    specs.extend(span_plots(cells, &mut taken)?);
+    Ok(specs)
+}
+
+/// Plots (c): clean mean max coverage against the span (executable rows used), per
+/// (policy, h) with clean cells at two spans or more: the clean-data confound's
+/// dose-response curve. Cells at the full span (no `span`) are left out, since a cell
+/// spec does not know the policy's row count.
+fn span_plots(
+    cells: &[CellData<'_>],
+    taken: &mut HashSet<String>,
+) -> Result<Vec<PlotSpec>, ReportError> {
+    let mut groups: Vec<((String, usize), Vec<usize>)> = Vec::new();
+    for (ci, c) in cells.iter().enumerate() {
+        if !c.is_clean() || c.spec.span.is_none() {
+            continue;
+        }
+        let key = (c.spec.policy.clone(), c.spec.h);
+        match groups.iter_mut().find(|(k, _)| *k == key) {
+            Some((_, v)) => v.push(ci),
+            None => groups.push((key, vec![ci])),
+        }
+    }
+    let mut specs = Vec::new();
+    for ((policy, h), mut members) in groups.into_iter().filter(|(_, m)| m.len() >= 2) {
+        members.sort_by_key(|&ci| cells[ci].spec.span);
+        let mut series = Vec::new();
+        for arm in arms_of(cells, &members) {
+            let mut points = Vec::new();
+            for &ci in &members {
+                let what = format!("cell `{}`, arm `{arm}`", cells[ci].spec.id);
+                if let Some(e) = Estimate::of(&coverages(cells[ci].episodes(&arm)), &what)? {
+                    points.push(Point {
+                        x: cells[ci].spec.span.unwrap_or_default() as f64,
+                        y: e.mean,
+                        err: e.se,
+                    });
+                }
+            }
+            if !points.is_empty() {
+                series.push(Series { label: arm, points });
+            }
+        }
+        let label = policy_label(&policy);
+        specs.push(PlotSpec {
+            name: unique(
+                taken,
+                format!("span-{}", slug(&format!("{label}-clean-h{h}"))),
+            ),
+            title: format!("Clean mean max coverage against span, {label}, h = {h}"),
+            x_label: "span (executable rows of each chunk used)".into(),
+            y_label: "mean max coverage (± SE)".into(),
+            integer_x: true,
+            log_x: false,
+            y_include: (0.0, 1.0),
+            y_refs: vec![],
+            series,
+        });
+    }
     Ok(specs)
 }
 
@@ -43,7 +102,7 @@ fn coverage_plots(
     let mut specs = Vec::new();
     // (a) Coverage and success against q, per (policy, fault, schedule kind, h).
     // Key: (policy, fault, schedule kind, h); value: member cells.
-    type QGroup = ((String, String, String, usize), Vec<usize>);
+    type QGroup = ((String, String, String, usize, Option<usize>), Vec<usize>);
     let mut groups: Vec<QGroup> = Vec::new();
     for &ci in corrupted {
         let s = cells[ci].spec;
@@ -52,13 +111,14 @@ fn coverage_plots(
             s.corruption.fault.to_string(),
             kind_tag(&s.corruption.schedule),
             s.h,
+            s.span,
         );
         match groups.iter_mut().find(|(k, _)| *k == key) {
             Some((_, v)) => v.push(ci),
             None => groups.push((key, vec![ci])),
         }
     }
-    for ((policy, fault, kind, h), members) in &groups {
+    for ((policy, fault, kind, h, span), members) in &groups {
         let mut points: Vec<(usize, usize)> =
             members.iter().map(|&ci| (cells[ci].spec.q(), ci)).collect();
         if let Some(cj) = clean_of(cells, members[0]) {
@@ -100,8 +160,8 @@ fn coverage_plots(
             }
         }
         let label = policy_label(policy);
-        let stem = slug(&format!("{label}-{fault}-{kind}-h{h}"));
-        let title = format!("{label}: {fault} ({kind}), h = {h}");
+        let stem = slug(&format!("{label}-{fault}-{kind}-h{h}{}", span_tag(*span)));
+        let title = format!("{label}: {fault} ({kind}), h = {h}{}", span_title(*span));
         let (cov_title, succ_title) = (
             format!("Mean max coverage, {title}"),
             format!("Success rate, {title}"),
@@ -144,17 +204,18 @@ fn recovered_plots(
     let (cells, baseline) = (ctx.cells, ctx.baseline);
     let mut specs = Vec::new();
     // (b) Recovered fraction against the attack budget (or q), per (policy, fault kind, h).
-    let mut groups: Vec<((String, String, usize), Vec<usize>)> = Vec::new();
+    type KindGroup = ((String, String, usize, Option<usize>), Vec<usize>);
+    let mut groups: Vec<KindGroup> = Vec::new();
     for &ci in corrupted {
         let s = cells[ci].spec;
-        let key = (s.policy.clone(), kind_tag(&s.corruption.fault), s.h);
+        let key = (s.policy.clone(), kind_tag(&s.corruption.fault), s.h, s.span);
         match groups.iter_mut().find(|(k, _)| *k == key) {
             Some((_, v)) => v.push(ci),
             None => groups.push((key, vec![ci])),
         }
     }
     let mut curves: Vec<Curve> = Vec::new();
-    for ((policy, kind, h), members) in &groups {
+    for ((policy, kind, h, span), members) in &groups {
         let budgeted: Vec<usize> = members
             .iter()
             .copied()
@@ -204,7 +265,7 @@ fn recovered_plots(
         if by_budget && base.is_finite() {
             curves.push(Curve {
                 policy: policy.clone(),
-                kind: format!("{kind}, h = {h}"),
+                kind: format!("{kind}, h = {h}{}", span_title(*span)),
                 base,
                 series: series.clone(),
             });
@@ -213,9 +274,15 @@ fn recovered_plots(
         specs.push(PlotSpec {
             name: unique(
                 taken,
-                format!("recovered-{}", slug(&format!("{label}-{kind}-h{h}"))),
+                format!(
+                    "recovered-{}",
+                    slug(&format!("{label}-{kind}-h{h}{}", span_tag(*span)))
+                ),
             ),
-            title: format!("Recovered fraction vs {baseline}, {label}: {kind}, h = {h}"),
+            title: format!(
+                "Recovered fraction vs {baseline}, {label}: {kind}, h = {h}{}",
+                span_title(*span)
+            ),
             x_label: if by_budget {
                 cells[used[0]].spec.corruption.fault.budget_axis().into()
             } else {
@@ -450,4 +517,14 @@ fn schedule_label(s: &CellSpec) -> String {
     let full = s.corruption.to_string();
     let fault = format!("{}-", s.corruption.fault);
     full.strip_prefix(&fault).unwrap_or(&full).to_string()
+}
+
+/// A plot name's span part: `-span<N>` where the cells use a shortened span.
+fn span_tag(span: Option<usize>) -> String {
+    span.map_or(String::new(), |s| format!("-span{s}"))
+}
+
+/// A plot title's span part.
+fn span_title(span: Option<usize>) -> String {
+    span.map_or(String::new(), |s| format!(", span {s}"))
 }

@@ -309,13 +309,13 @@ impl ChunkPolicy for Shortened {
         self.1
     }
     fn needs(&self) -> ObsNeeds {
-        NEEDS
+        self.0.needs()
     }
     fn n_obs_steps(&self) -> usize {
-        2
+        self.0.n_obs_steps()
     }
     fn action_dim(&self) -> usize {
-        2
+        self.0.action_dim()
     }
     fn predict_chunk(
         &self,

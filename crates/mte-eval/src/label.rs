@@ -25,6 +25,12 @@ pub(crate) fn slug(s: &str) -> String {
         .collect()
 }
 
+/// A cell id's or plot name's span part: `-span<N>` for a shortened span, nothing for the
+/// full one.
+pub(crate) fn span_suffix(span: Option<usize>) -> String {
+    span.map_or(String::new(), |s| format!("-span{s}"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

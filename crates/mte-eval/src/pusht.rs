@@ -805,10 +805,9 @@ impl<'e, 's> Episode<'e, 's> {
     ) -> Result<QueryEvent<'_>, RolloutError> {
         let (steps, corrupted) = (self.steps, p.corrupted);
         self.chunk = chunk;
-        // A shortened span keeps the chunk's first rows (a longer chunk only: a wrong
-        // length stays the ensembler's typed error).
-        self.chunk
-            .truncate(self.chunk.len().min(self.geometry.t_p * self.out.len()));
+        // A shortened span keeps the chunk's first rows (a shorter chunk is left as it is:
+        // a wrong length stays the ensembler's typed error).
+        self.chunk.truncate(self.geometry.t_p * self.out.len());
         // Common-mode bias acts while the newest query is corrupted.
         if let CandidateFault::CommonMode(s) = &mut self.candidate_fault {
             s.on = corrupted;

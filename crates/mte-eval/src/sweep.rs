@@ -38,7 +38,7 @@ use crate::Reporter;
 use crate::corruption::{CorruptionSpec, Fault, Schedule, SensorFault};
 use crate::environment::{EnvTarget, Environment};
 use crate::expert_policy::{PushTExpertPolicy, is_expert_policy};
-use crate::label::{policy_label, slug};
+use crate::label::{policy_label, slug, span_suffix};
 use crate::lockstep::run_lockstep;
 use crate::pusht::{EpisodeSpec, Execution, RolloutError, run_episode};
 use crate::record::{CellSpec, ErrorRecord, Line, Manifest, RUN_FORMAT};
@@ -640,7 +640,7 @@ fn load_policies<'c>(
     for c in cells {
         if let Some(Ok(p)) = loaded.get(c.policy.as_str()) {
             let t_p = crate::pusht::used_horizon(p.horizon(), p.n_obs_steps(), c.span)
-                .map_err(|e| field("span", format!("{:?}", c.span), e.to_string()))?;
+                .map_err(|e| field("span", &c.id, e.to_string()))?;
             check_burst(c, t_p, p.n_obs_steps())?;
         }
     }
@@ -837,11 +837,6 @@ fn check_burst(c: &CellSpec, t_p: usize, t_o: usize) -> Result<(), SweepError> {
         ));
     }
     Ok(())
-}
-
-/// A cell id's span part: `-span<N>`, or nothing for the full span.
-fn span_suffix(span: Option<usize>) -> String {
-    span.map_or(String::new(), |s| format!("-span{s}"))
 }
 
 fn poisoned() -> SweepError {

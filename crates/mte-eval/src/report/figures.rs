@@ -2,6 +2,7 @@
 //! the recovered fraction against the attack budget) and their series. `plot` draws them.
 
 use super::*;
+use crate::label::span_suffix;
 
 /// Specs of every plot: coverage and success against `q`, recovered fraction against the
 /// attack budget (or `q`); with a defence table, the undefended policy's recovered-fraction
@@ -160,7 +161,10 @@ fn coverage_plots(
             }
         }
         let label = policy_label(policy);
-        let stem = slug(&format!("{label}-{fault}-{kind}-h{h}{}", span_tag(*span)));
+        let stem = slug(&format!(
+            "{label}-{fault}-{kind}-h{h}{}",
+            span_suffix(*span)
+        ));
         let title = format!("{label}: {fault} ({kind}), h = {h}{}", span_title(*span));
         let (cov_title, succ_title) = (
             format!("Mean max coverage, {title}"),
@@ -276,7 +280,7 @@ fn recovered_plots(
                 taken,
                 format!(
                     "recovered-{}",
-                    slug(&format!("{label}-{kind}-h{h}{}", span_tag(*span)))
+                    slug(&format!("{label}-{kind}-h{h}{}", span_suffix(*span)))
                 ),
             ),
             title: format!(
@@ -517,11 +521,6 @@ fn schedule_label(s: &CellSpec) -> String {
     let full = s.corruption.to_string();
     let fault = format!("{}-", s.corruption.fault);
     full.strip_prefix(&fault).unwrap_or(&full).to_string()
-}
-
-/// A plot name's span part: `-span<N>` where the cells use a shortened span.
-fn span_tag(span: Option<usize>) -> String {
-    span.map_or(String::new(), |s| format!("-span{s}"))
 }
 
 /// A plot title's span part.

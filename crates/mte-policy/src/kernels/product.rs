@@ -43,6 +43,18 @@ pub(super) trait Element:
 {
     const ZERO: Self;
     fn mul_add(self, b: Self, c: Self) -> Self;
+
+    /// The tiling this type's products take on this CPU.
+    fn best_tiles() -> Tiles {
+        Tiles::Single
+    }
+
+    /// The paired register tile ([`portable_pair`]'s arithmetic), in the fastest form this
+    /// type has on this CPU.
+    #[inline(always)]
+    fn pair_tile<const W: usize>(lo: &[Self], hi: &[Self], group: &[Self]) -> PairTile<Self, W> {
+        portable_pair(lo, hi, group)
+    }
 }
 
 impl Element for f32 {
@@ -50,6 +62,23 @@ impl Element for f32 {
     #[inline(always)]
     fn mul_add(self, b: Self, c: Self) -> Self {
         f32::mul_add(self, b, c)
+    }
+
+    fn best_tiles() -> Tiles {
+        #[cfg(target_arch = "x86_64")]
+        if wide::available() {
+            return Tiles::Pairs;
+        }
+        Tiles::Single
+    }
+
+    #[inline(always)]
+    fn pair_tile<const W: usize>(lo: &[Self], hi: &[Self], group: &[Self]) -> PairTile<Self, W> {
+        #[cfg(target_arch = "x86_64")]
+        if wide::available() {
+            return wide::pair(lo, hi, group);
+        }
+        portable_pair(lo, hi, group)
     }
 }
 
@@ -140,8 +169,19 @@ pub(super) fn left_products_packed<T: Element>(
     with_panels(vector, w, panels, (out, bias));
 }
 
-/// The products of the batch's packed `panels` with `w`.
+/// The products of the batch's packed `panels` with `w`, in this CPU's best tiling.
 fn with_panels<T: Element>(
+    vector: VectorSide<'_, T>,
+    w: Shared<'_, T>,
+    panels: &[T],
+    out: (&mut [T], Option<&[T]>),
+) {
+    with_panels_as(T::best_tiles(), vector, w, panels, out);
+}
+
+/// [`with_panels`] in the given tiling (the tests run both on any CPU).
+fn with_panels_as<T: Element>(
+    tiles: Tiles,
     vector: VectorSide<'_, T>,
     w: Shared<'_, T>,
     panels: &[T],
@@ -179,18 +219,31 @@ fn with_panels<T: Element>(
         }
     };
     let panels = &panels[..vector.count().div_ceil(LANES) * d.k * LANES];
-    let per_block = (BLOCK_BYTES / (d.k * LANES * std::mem::size_of::<T>())).max(1);
+    // An even number of panels per block, so that pairs never straddle two blocks.
+    let per_block = (BLOCK_BYTES / (d.k * LANES * std::mem::size_of::<T>())).max(2) & !1;
     for (bi, block) in panels.chunks(per_block * d.k * LANES).enumerate() {
         let first = bi * per_block;
-        grid(
-            block,
-            scalars,
-            (d.k, count),
-            |p, c0, tile: &[[T; LANES]]| {
-                vector.store(out, (first + p) * LANES, (c0, bias), tile);
-            },
-        );
+        let put = |p, c0, tile: &[[T; LANES]]| {
+            vector.store(out, (first + p) * LANES, (c0, bias), tile);
+        };
+        match tiles {
+            Tiles::Single => grid(block, scalars, (d.k, count), put),
+            Tiles::Pairs => grid_pairs(block, scalars, (d.k, count), put),
+        }
     }
+}
+
+/// How the register tiles cover the vector side: one panel ([`LANES`] lines) at a time, or
+/// two neighbouring panels at once (`2 LANES` lines: one 512-bit register of f32). Both give
+/// every element the same chain of fused multiply-adds, so the same bits; only the number
+/// of instructions differs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Tiles {
+    /// One panel per tile: 12 accumulators of one AVX2 (or NEON pair of) register(s).
+    Single,
+    /// Two panels per tile, for CPUs with AVX-512 (32 vector registers of 16 f32): twice the
+    /// lanes per fused multiply-add, 12 accumulators of 16 lanes.
+    Pairs,
 }
 
 /// The batch operand's lines.
@@ -319,22 +372,149 @@ fn grid<T: Element, F: FnMut(usize, usize, &[[T; LANES]])>(
     for (q, group) in scalars.chunks(k * WIDTH).enumerate() {
         let c0 = q * WIDTH;
         for (p, panel) in panels.chunks(k * LANES).enumerate() {
-            let at = group;
+            put_single(panel, group, count - c0, |t| put(p, c0, t));
+        }
+    }
+}
+
+/// [`grid`] with two neighbouring panels per register tile ([`Tiles::Pairs`]); a block's
+/// odd last panel takes [`grid`]'s single tile. `put` receives each panel's half of a tile.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "aarch64+neon"
+))]
+fn grid_pairs<T: Element, F: FnMut(usize, usize, &[[T; LANES]])>(
+    panels: &[T],
+    scalars: &[T],
+    (k, count): (usize, usize),
+    mut put: F,
+) {
+    for (q, group) in scalars.chunks(k * WIDTH).enumerate() {
+        let c0 = q * WIDTH;
+        for (p2, pair) in panels.chunks(2 * k * LANES).enumerate() {
+            let p = 2 * p2;
+            if pair.len() < 2 * k * LANES {
+                put_single(pair, group, count - c0, |t| put(p, c0, t));
+                continue;
+            }
+            let (lo, hi) = pair.split_at(k * LANES);
+            let mut put2 = |a: &[[T; LANES]], b: &[[T; LANES]]| {
+                put(p, c0, a);
+                put(p + 1, c0, b);
+            };
+            let f = &mut put2;
             match count - c0 {
-                w if w >= WIDTH => put(p, c0, &tile::<T, WIDTH>(panel, at)),
-                11 => put(p, c0, &tile::<T, 11>(panel, at)),
-                10 => put(p, c0, &tile::<T, 10>(panel, at)),
-                9 => put(p, c0, &tile::<T, 9>(panel, at)),
-                8 => put(p, c0, &tile::<T, 8>(panel, at)),
-                7 => put(p, c0, &tile::<T, 7>(panel, at)),
-                6 => put(p, c0, &tile::<T, 6>(panel, at)),
-                5 => put(p, c0, &tile::<T, 5>(panel, at)),
-                4 => put(p, c0, &tile::<T, 4>(panel, at)),
-                3 => put(p, c0, &tile::<T, 3>(panel, at)),
-                2 => put(p, c0, &tile::<T, 2>(panel, at)),
-                _ => put(p, c0, &tile::<T, 1>(panel, at)),
+                w if w >= WIDTH => pair_into::<T, WIDTH>(lo, hi, group, f),
+                11 => pair_into::<T, 11>(lo, hi, group, f),
+                10 => pair_into::<T, 10>(lo, hi, group, f),
+                9 => pair_into::<T, 9>(lo, hi, group, f),
+                8 => pair_into::<T, 8>(lo, hi, group, f),
+                7 => pair_into::<T, 7>(lo, hi, group, f),
+                6 => pair_into::<T, 6>(lo, hi, group, f),
+                5 => pair_into::<T, 5>(lo, hi, group, f),
+                4 => pair_into::<T, 4>(lo, hi, group, f),
+                3 => pair_into::<T, 3>(lo, hi, group, f),
+                2 => pair_into::<T, 2>(lo, hi, group, f),
+                _ => pair_into::<T, 1>(lo, hi, group, f),
             }
         }
+    }
+}
+
+/// One panel's single tile for the `left` scalar lines still to do (at most [`WIDTH`]).
+#[inline(always)]
+fn put_single<T: Element>(panel: &[T], group: &[T], left: usize, put: impl FnOnce(&[[T; LANES]])) {
+    match left {
+        w if w >= WIDTH => put(&tile::<T, WIDTH>(panel, group)),
+        11 => put(&tile::<T, 11>(panel, group)),
+        10 => put(&tile::<T, 10>(panel, group)),
+        9 => put(&tile::<T, 9>(panel, group)),
+        8 => put(&tile::<T, 8>(panel, group)),
+        7 => put(&tile::<T, 7>(panel, group)),
+        6 => put(&tile::<T, 6>(panel, group)),
+        5 => put(&tile::<T, 5>(panel, group)),
+        4 => put(&tile::<T, 4>(panel, group)),
+        3 => put(&tile::<T, 3>(panel, group)),
+        2 => put(&tile::<T, 2>(panel, group)),
+        _ => put(&tile::<T, 1>(panel, group)),
+    }
+}
+
+/// A paired tile's two panels' tiles, `W` lines of [`LANES`] each.
+pub(super) type PairTile<T, const W: usize> = ([[T; LANES]; W], [[T; LANES]; W]);
+
+/// [`Element::pair_tile`] into `put`.
+#[inline(always)]
+fn pair_into<T: Element, const W: usize>(
+    lo: &[T],
+    hi: &[T],
+    group: &[T],
+    put: &mut impl FnMut(&[[T; LANES]], &[[T; LANES]]),
+) {
+    let (a, b) = T::pair_tile::<W>(lo, hi, group);
+    put(&a, &b);
+}
+
+/// The paired register tile, portably: `W` scalar lines against the panels `lo` and `hi`,
+/// each lane's chain [`tile`]'s (`acc[c][r] = fma(v[kk][r], s[kk][c], acc[c][r])` for `kk` in
+/// order), as [`tile`] on each panel gives it.
+#[inline(always)]
+fn portable_pair<T: Element, const W: usize>(lo: &[T], hi: &[T], group: &[T]) -> PairTile<T, W> {
+    (tile::<T, W>(lo, group), tile::<T, W>(hi, group))
+}
+
+/// The paired tile in AVX-512 registers: sixteen lanes (two panels) per fused multiply-add.
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod wide {
+    use super::{LANES, PairTile, WIDTH};
+    use std::arch::x86_64::{
+        __m512, _mm256_castps_pd, _mm256_loadu_ps, _mm512_castpd_ps, _mm512_castps_pd,
+        _mm512_castps256_ps512, _mm512_fmadd_ps, _mm512_insertf64x4, _mm512_set1_ps,
+        _mm512_setzero_ps, _mm512_storeu_ps,
+    };
+
+    /// Whether this CPU has AVX-512F (detected once, then a cached load).
+    #[inline(always)]
+    pub(super) fn available() -> bool {
+        std::arch::is_x86_feature_detected!("avx512f")
+    }
+
+    /// [`super::portable_pair`] in AVX-512: the same fused multiply-adds in the same order
+    /// (one rounding each, as `f32::mul_add`), so the same bits. Callers check
+    /// [`available`]; on a CPU without AVX-512F this panics (an internal error).
+    #[inline(always)]
+    pub(super) fn pair<const W: usize>(lo: &[f32], hi: &[f32], group: &[f32]) -> PairTile<f32, W> {
+        assert!(available(), "the AVX-512 tile on a CPU without AVX-512F");
+        // SAFETY: AVX-512F (and the AVX it implies) is available, checked above.
+        unsafe { pair_avx512::<W>(lo, hi, group) }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    fn pair_avx512<const W: usize>(lo: &[f32], hi: &[f32], group: &[f32]) -> PairTile<f32, W> {
+        let mut acc: [__m512; W] = [_mm512_setzero_ps(); W];
+        let (vl, _) = lo.as_chunks::<LANES>();
+        let (vh, _) = hi.as_chunks::<LANES>();
+        let (ss, _) = group.as_chunks::<WIDTH>();
+        for ((a, b), sk) in vl.iter().zip(vh).zip(ss) {
+            // SAFETY: `a` and `b` are arrays of eight f32: each load reads exactly one.
+            let (a, b) = unsafe { (_mm256_loadu_ps(a.as_ptr()), _mm256_loadu_ps(b.as_ptr())) };
+            let v = _mm512_castps_pd(_mm512_castps256_ps512(a));
+            let v = _mm512_castpd_ps(_mm512_insertf64x4::<1>(v, _mm256_castps_pd(b)));
+            for (c, acc) in acc.iter_mut().enumerate() {
+                *acc = _mm512_fmadd_ps(v, _mm512_set1_ps(sk[c]), *acc);
+            }
+        }
+        let mut out = ([[0f32; LANES]; W], [[0f32; LANES]; W]);
+        for (c, acc) in acc.iter().enumerate() {
+            let mut row = [0f32; 2 * LANES];
+            // SAFETY: `row` holds sixteen f32, the store writes exactly those.
+            unsafe { _mm512_storeu_ps(row.as_mut_ptr(), *acc) };
+            out.0[c].copy_from_slice(&row[..LANES]);
+            out.1[c].copy_from_slice(&row[LANES..]);
+        }
+        out
     }
 }
 
@@ -388,11 +568,32 @@ mod tests {
             .collect()
     }
 
+    /// [`products`] in the tiling `tiles`, whatever this CPU's best.
+    fn products_as<T: Element>(
+        tiles: Tiles,
+        side: Side,
+        w: Shared<'_, T>,
+        x: &[T],
+        d: Dims,
+        batch: usize,
+        out: &mut [T],
+    ) {
+        let vector = VectorSide { side, x, d, batch };
+        with_panels_as(tiles, vector, w, &vector.panels(), (out, None));
+    }
+
     /// Both sides; tall and wide outputs, every tail of both tile sides (lanes across sample
-    /// boundaries), a depth of one, blocks of several cache blocks; the shared matrix stored
-    /// plain and transposed: each sample's result is the definition's, bit for bit.
+    /// boundaries), a depth of one, blocks of several cache blocks, odd panel counts (a
+    /// paired tiling's single last panel); the shared matrix stored plain and transposed;
+    /// both tilings: each sample's result is the definition's, bit for bit.
     #[test]
     fn every_element_is_the_definition_bit_for_bit() {
+        for tiles in [Tiles::Single, Tiles::Pairs] {
+            definition_bit_for_bit(tiles);
+        }
+    }
+
+    fn definition_bit_for_bit(tiles: Tiles) {
         let shapes = [
             (1, 1, 1, 1),
             (6, 7, 16, 3),
@@ -403,6 +604,7 @@ mod tests {
             (64, 320, 16, 9),
             (17, 9, 4, 2),
             (30, 1300, 16, 9),
+            (3, 7000, 8, 3),
         ];
         for (m, k, n, batch) in shapes {
             let d = Dims { m, k, n };
@@ -423,12 +625,13 @@ mod tests {
                         transposed,
                     };
                     let mut out = vec![f32::NAN; batch * m * n];
-                    products(side, shared, &x, d, batch, &mut out);
+                    products_as(tiles, side, shared, &x, d, batch, &mut out);
                     if matches!(side, Side::Left) {
                         // A weight packed once gives the same bits.
                         let panels = left_panels(&w, m, k);
                         let mut again = vec![f32::NAN; batch * m * n];
-                        products(side, Shared::Panels(&panels), &x, d, batch, &mut again);
+                        let packed = Shared::Panels(&panels);
+                        products_as(tiles, side, packed, &x, d, batch, &mut again);
                         assert!(
                             again
                                 .iter()
@@ -449,7 +652,7 @@ mod tests {
                             .all(|(g, w)| g.to_bits() == w.to_bits());
                         assert!(
                             same,
-                            "{m}x{k}x{n}, {side:?}, transposed {transposed}, sample {s}"
+                            "{m}x{k}x{n}, {side:?}, transposed {transposed}, sample {s}, {tiles:?}"
                         );
                     }
                 }

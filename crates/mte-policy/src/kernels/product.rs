@@ -379,11 +379,10 @@ fn grid<T: Element, F: FnMut(usize, usize, &[[T; LANES]])>(
 
 /// [`grid`] with two neighbouring panels per register tile ([`Tiles::Pairs`]); a block's
 /// odd last panel takes [`grid`]'s single tile. `put` receives each panel's half of a tile.
-#[multiversion::multiversion(targets(
-    "x86_64+avx512f+avx512vl+avx2+fma",
-    "x86_64+avx2+fma",
-    "aarch64+neon"
-))]
+/// Compiled for AVX2, not AVX-512: the paired tile carries its own AVX-512 code
+/// ([`Element::pair_tile`]), and LLVM's AVX-512 build of the single tile's loops used gathers
+/// and scatters (7x slower at batch 1, where odd panels are common).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "aarch64+neon"))]
 fn grid_pairs<T: Element, F: FnMut(usize, usize, &[[T; LANES]])>(
     panels: &[T],
     scalars: &[T],

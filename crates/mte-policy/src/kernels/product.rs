@@ -7,9 +7,10 @@
 //! element's neighbours (how many rows or columns the product has, which tile computes the
 //! element, which samples share the call) enters its value, so a sample's result is the same
 //! bits in a batch of one and in a batch of 64; and since a fused multiply-add is exactly
-//! rounded by definition, the AVX2 and NEON builds of the tile loop (through `multiversion`)
-//! give the same bits as each other and as the scalar `mul_add` of the baseline build (which,
-//! on an x86-64 CPU without FMA, is a slow library call).
+//! rounded by definition, the AVX2 and NEON builds of the tile loop (through `multiversion`),
+//! the AVX-512 tile of two panels at once ([`Tiles::Pairs`], on CPUs that have it, for
+//! products of at least 64 vector lines) and the scalar `mul_add` of the baseline build
+//! (which, on an x86-64 CPU without FMA, is a slow library call) all give the same bits.
 //!
 //! Why not the `gemm` crate that candle calls: it picks its blocking and its microkernels
 //! from the product's shape, so batch invariance needed one call per sample, and a sample of
@@ -185,8 +186,9 @@ fn with_panels<T: Element>(
 }
 
 /// The fewest vector lines for which a product takes the paired tiles: below it (a batch-1
-/// U-Net, 16 columns) the AVX2 tiles were faster on an AVX-512 Xeon (the batch-1 forward
-/// 0.58 against 0.81 ms): short bursts of 512-bit arithmetic between other work.
+/// U-Net, 16 columns) the AVX2 tiles were faster on an AVX-512 Xeon (the batch-1 forwards
+/// about 40% slower with paired tiles in two rounds of three): short bursts of 512-bit
+/// arithmetic between other work.
 const PAIRS_MIN_LINES: usize = 64;
 
 /// [`with_panels`] in the given tiling (the tests run both on any CPU).

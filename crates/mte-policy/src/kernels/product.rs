@@ -76,8 +76,8 @@ impl Element for f32 {
     #[inline(always)]
     fn pair_tile<const W: usize>(lo: &[Self], hi: &[Self], group: &[Self]) -> PairTile<Self, W> {
         #[cfg(target_arch = "x86_64")]
-        if wide::available() {
-            return wide::pair(lo, hi, group);
+        if let Some(t) = wide::pair(lo, hi, group) {
+            return t;
         }
         portable_pair(lo, hi, group)
     }
@@ -371,6 +371,33 @@ fn biased<T: Element>(v: T, bias: Option<&[T]>, line: usize) -> T {
     }
 }
 
+/// `$body` with `$w` the constant number of scalar lines a tile takes when `$left` lines are
+/// still to do: [`WIDTH`], or `$left` itself below it (a tile's width is a const parameter).
+// `by_width!` lists the widths below twelve.
+const _: () = assert!(WIDTH == 12);
+
+macro_rules! by_width {
+    ($left:expr, $w:ident => $body:expr) => {
+        by_width!(@arms $left, $w, $body; 11 10 9 8 7 6 5 4 3 2)
+    };
+    (@arms $left:expr, $w:ident, $body:expr; $($n:literal)*) => {
+        match $left {
+            l if l >= WIDTH => {
+                const $w: usize = WIDTH;
+                $body
+            }
+            $($n => {
+                const $w: usize = $n;
+                $body
+            })*
+            _ => {
+                const $w: usize = 1;
+                $body
+            }
+        }
+    };
+}
+
 /// Every tile of one cache block: `panels` (vector panels, `k` deep) against every group of
 /// [`WIDTH`] scalar lines in `scalars` (packed by [`pack`]; `count` lines); `put(p, c0,
 /// tile)` receives panel `p`'s tile for the scalar lines from `c0`.
@@ -414,21 +441,7 @@ fn grid_pairs<T: Element, F: FnMut(usize, usize, &[[T; LANES]])>(
                 put(p, c0, a);
                 put(p + 1, c0, b);
             };
-            let f = &mut put2;
-            match count - c0 {
-                w if w >= WIDTH => pair_into::<T, WIDTH>(lo, hi, group, f),
-                11 => pair_into::<T, 11>(lo, hi, group, f),
-                10 => pair_into::<T, 10>(lo, hi, group, f),
-                9 => pair_into::<T, 9>(lo, hi, group, f),
-                8 => pair_into::<T, 8>(lo, hi, group, f),
-                7 => pair_into::<T, 7>(lo, hi, group, f),
-                6 => pair_into::<T, 6>(lo, hi, group, f),
-                5 => pair_into::<T, 5>(lo, hi, group, f),
-                4 => pair_into::<T, 4>(lo, hi, group, f),
-                3 => pair_into::<T, 3>(lo, hi, group, f),
-                2 => pair_into::<T, 2>(lo, hi, group, f),
-                _ => pair_into::<T, 1>(lo, hi, group, f),
-            }
+            by_width!(count - c0, W => pair_into::<T, W>(lo, hi, group, &mut put2));
         }
     }
 }
@@ -436,20 +449,7 @@ fn grid_pairs<T: Element, F: FnMut(usize, usize, &[[T; LANES]])>(
 /// One panel's single tile for the `left` scalar lines still to do (at most [`WIDTH`]).
 #[inline(always)]
 fn put_single<T: Element>(panel: &[T], group: &[T], left: usize, put: impl FnOnce(&[[T; LANES]])) {
-    match left {
-        w if w >= WIDTH => put(&tile::<T, WIDTH>(panel, group)),
-        11 => put(&tile::<T, 11>(panel, group)),
-        10 => put(&tile::<T, 10>(panel, group)),
-        9 => put(&tile::<T, 9>(panel, group)),
-        8 => put(&tile::<T, 8>(panel, group)),
-        7 => put(&tile::<T, 7>(panel, group)),
-        6 => put(&tile::<T, 6>(panel, group)),
-        5 => put(&tile::<T, 5>(panel, group)),
-        4 => put(&tile::<T, 4>(panel, group)),
-        3 => put(&tile::<T, 3>(panel, group)),
-        2 => put(&tile::<T, 2>(panel, group)),
-        _ => put(&tile::<T, 1>(panel, group)),
-    }
+    by_width!(left, W => put(&tile::<T, W>(panel, group)));
 }
 
 /// A paired tile's two panels' tiles, `W` lines of [`LANES`] each.
@@ -493,13 +493,16 @@ mod wide {
     }
 
     /// [`super::portable_pair`] in AVX-512: the same fused multiply-adds in the same order
-    /// (one rounding each, as `f32::mul_add`), so the same bits. Callers check
-    /// [`available`]; on a CPU without AVX-512F this panics (an internal error).
+    /// (one rounding each, as `f32::mul_add`), so the same bits; `None` on a CPU without
+    /// AVX-512F.
     #[inline(always)]
-    pub(super) fn pair<const W: usize>(lo: &[f32], hi: &[f32], group: &[f32]) -> PairTile<f32, W> {
-        assert!(available(), "the AVX-512 tile on a CPU without AVX-512F");
-        // SAFETY: AVX-512F (and the AVX it implies) is available, checked above.
-        unsafe { pair_avx512::<W>(lo, hi, group) }
+    pub(super) fn pair<const W: usize>(
+        lo: &[f32],
+        hi: &[f32],
+        group: &[f32],
+    ) -> Option<PairTile<f32, W>> {
+        // SAFETY: AVX-512F (and the AVX it implies) is available, checked first.
+        available().then(|| unsafe { pair_avx512::<W>(lo, hi, group) })
     }
 
     #[target_feature(enable = "avx512f")]

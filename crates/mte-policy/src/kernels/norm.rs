@@ -93,16 +93,19 @@ fn forward<T: Float>(x: &[T], gamma: &[T], beta: &[T], d: Dims) -> Vec<T> {
 /// mean(γ dy x̂))`, each sum in index order.
 type BlockSums = (Vec<(f64, f64)>, (f64, f64));
 
-/// [`BlockSums`] of the `xs.len() / n` blocks (first block `first`) of one chunk.
+/// [`BlockSums`] of the `xs.len() / n` blocks (first block `first`) of one chunk; the
+/// channels' sums only where `params` asks for γ's and β's gradients (each sum is its own
+/// chain, so skipping them changes no other bit).
 fn block_sums<T: Float>(
     (xs, dys): (&[T], &[T]),
     m: &[(f64, f64); INTERLEAVE],
     gamma: &[T],
-    (first, n, d): (usize, usize, Dims),
+    (first, n, d, params): (usize, usize, Dims, bool),
 ) -> Vec<BlockSums> {
     let (_, cg) = d.block();
     let k = xs.len() / n;
-    let mut sums: Vec<BlockSums> = vec![(vec![(0.0, 0.0); cg], (0.0, 0.0)); k];
+    let mut sums: Vec<BlockSums> =
+        vec![(vec![(0.0, 0.0); if params { cg } else { 0 }], (0.0, 0.0)); k];
     for ci in 0..cg {
         let ga: [f64; INTERLEAVE] = std::array::from_fn(|j| {
             let g = (first + j) % d.groups;
@@ -113,8 +116,10 @@ fn block_sums<T: Float>(
                 let (mean, rstd) = m[j];
                 let xh = (xs[j * n + i].to_f64() - mean) * rstd;
                 let dv = dys[j * n + i].to_f64();
-                ch[ci].0 += dv * xh;
-                ch[ci].1 += dv;
+                if let Some(ch) = ch.get_mut(ci) {
+                    ch.0 += dv * xh;
+                    ch.1 += dv;
+                }
                 *m_g += ga[j] * dv;
                 *m_gx += ga[j] * dv * xh;
             }
@@ -126,8 +131,8 @@ fn block_sums<T: Float>(
     sums
 }
 
-/// `[dx (B·C·S) | dγ (C) | dβ (C)]` in one buffer.
-fn backward<T: Float>(x: &[T], gamma: &[T], dy: &[T], d: Dims) -> Vec<T> {
+/// `[dx (B·C·S) | dγ (C) | dβ (C)]` in one buffer; `dx` alone unless `params`.
+fn backward<T: Float>(x: &[T], gamma: &[T], dy: &[T], d: Dims, params: bool) -> Vec<T> {
     let (n, cg) = d.block();
     let mut dx = vec![T::default(); x.len()];
     // Per block: its channels' (Σ dy x̂, Σ dy), summed over the batch afterwards.
@@ -141,7 +146,7 @@ fn backward<T: Float>(x: &[T], gamma: &[T], dy: &[T], d: Dims) -> Vec<T> {
         .flat_map_iter(|(chunk, (dxs, (xs, dys)))| {
             let first = chunk * INTERLEAVE;
             let m = moments(xs, n, d.eps);
-            let sums = block_sums((xs, dys), &m, gamma, (first, n, d));
+            let sums = block_sums((xs, dys), &m, gamma, (first, n, d, params));
             let blocks = dxs.chunks_mut(n).zip(xs.chunks(n).zip(dys.chunks(n)));
             for (j, (dxb, (xb, dyb))) in blocks.enumerate() {
                 let g = (first + j) % d.groups;
@@ -159,6 +164,9 @@ fn backward<T: Float>(x: &[T], gamma: &[T], dy: &[T], d: Dims) -> Vec<T> {
             sums.into_iter().map(|(ch, _)| ch)
         })
         .collect();
+    if !params {
+        return dx;
+    }
     let mut dgamma = vec![0.0; d.c];
     let mut dbeta = vec![0.0; d.c];
     for (blk, sums) in partial.iter().enumerate() {
@@ -206,12 +214,18 @@ impl CustomOp3 for GroupNormOp {
         &self,
         x: &Tensor,
         gamma: &Tensor,
-        _beta: &Tensor,
+        beta: &Tensor,
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let all = x.apply_op3_no_bwd(gamma, &grad.contiguous()?, &GroupNormBwd(*self))?;
+        // A loaded checkpoint's γ and β are constants: then only `dx` is computed.
+        let params = gamma.track_op() || beta.track_op();
+        let op = GroupNormBwd(*self, params);
+        let all = x.apply_op3_no_bwd(gamma, &grad.contiguous()?, &op)?;
         let (n, c) = (x.elem_count(), x.dim(1)?);
+        if !params {
+            return Ok((Some(all.reshape(x.shape())?), None, None));
+        }
         Ok((
             Some(all.narrow(0, 0, n)?.reshape(x.shape())?),
             Some(all.narrow(0, n, c)?),
@@ -221,7 +235,8 @@ impl CustomOp3 for GroupNormOp {
 }
 
 #[derive(Clone, Copy, Debug)]
-struct GroupNormBwd(GroupNormOp);
+/// The backward pass; `.1`: whether γ's and β's gradients are wanted.
+struct GroupNormBwd(GroupNormOp, bool);
 
 impl CustomOp3 for GroupNormBwd {
     fn name(&self) -> &'static str {
@@ -241,9 +256,9 @@ impl CustomOp3 for GroupNormBwd {
         let out = float_storages!(
             "group_norm backward",
             [(x, s1, l1), (g, s2, l2), (dy, s3, l3)],
-            backward(x, g, dy, d)
+            backward(x, g, dy, d, self.1)
         );
-        let len = l1.shape().elem_count() + 2 * d.c;
+        let len = l1.shape().elem_count() + if self.1 { 2 * d.c } else { 0 };
         Ok((out, Shape::from(len)))
     }
 }
@@ -390,7 +405,7 @@ mod tests {
             let gamma: Vec<f64> = v(&[c], 60 + i as u64).iter().map(|g| g + 1.5).collect();
             let (y_want, dx_want) = one_block_at_a_time(&x, &gamma, &dy, d);
             let y = forward(&x, &gamma, &vec![0.25; c], d);
-            let dx = backward(&x, &gamma, &dy, d);
+            let dx = backward(&x, &gamma, &dy, d, true);
             let bits = |v: &[f64]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&y), bits(&y_want), "values, case {i}");
             assert_eq!(
@@ -398,7 +413,35 @@ mod tests {
                 bits(&dx_want),
                 "input gradient, case {i}"
             );
+            // Without γ's and β's gradients (constant parameters): `dx` alone, same bits.
+            let dx_only = backward(&x, &gamma, &dy, d, false);
+            assert_eq!(bits(&dx_only), bits(&dx_want), "dx alone, case {i}");
         }
+    }
+
+    /// Constant γ and β (a loaded checkpoint): the input's gradient through candle's backward
+    /// is the one it has when they are variables, and they get none.
+    #[test]
+    fn constant_parameters_get_no_gradient_and_change_no_bit_of_dx() -> Result<()> {
+        let (x, c) = (Var::from_tensor(&rand(&[2, 8, 5, 3], 7))?, 8);
+        let (g, b) = (rand(&[c], 8), rand(&[c], 9));
+        let r = rand(&[2, 8, 5, 3], 10);
+        let grads = |g: &Tensor, b: &Tensor| -> Result<candle_core::backprop::GradStore> {
+            (group_norm(x.as_tensor(), 4, g, b, 1e-5)? * &r)?
+                .sum_all()?
+                .backward()
+        };
+        let (gv, bv) = (Var::from_tensor(&g)?, Var::from_tensor(&b)?);
+        let with_params = grads(gv.as_tensor(), bv.as_tensor())?;
+        let constant = grads(&g, &b)?;
+        let dx = |s: &candle_core::backprop::GradStore| -> Result<Vec<u64>> {
+            let t = s.get(x.as_tensor()).expect("dx").flatten_all()?;
+            Ok(t.to_vec1::<f64>()?.iter().map(|v| v.to_bits()).collect())
+        };
+        assert_eq!(dx(&with_params)?, dx(&constant)?);
+        assert!(with_params.get(gv.as_tensor()).is_some());
+        assert!(constant.get(&g).is_none() && constant.get(&b).is_none());
+        Ok(())
     }
 
     #[test]

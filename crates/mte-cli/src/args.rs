@@ -1093,6 +1093,10 @@ pub struct FinetuneArgs {
     /// tied to the original encoder's (an mte extension; 0, the protocol, leaves it off).
     #[arg(long, default_value_t = 0.0)]
     pub clean_features: f64,
+    /// Weight of the clean task term: the frozen head's denoising loss on the clean frames,
+    /// beside the patched ones (an mte extension; 0, the protocol, leaves it off).
+    #[arg(long, default_value_t = 0.0)]
+    pub clean_task: f64,
     /// Windows per batch.
     #[arg(long, default_value_t = 16)]
     pub batch_size: usize,

@@ -122,7 +122,8 @@ fn batch_loss(p: &DiffusionPolicy, d: &TrainData, texture: &Tensor, seed: u64) -
         .map(|_| rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng))
         .collect();
     let eps = Tensor::from_vec(eps, (8, 16, 2), &Device::Cpu).expect("eps");
-    let ts: Vec<usize> = (0..8).map(|_| rng.random_range(0..100)).collect();
+    let n_train = p.config().num_train_timesteps;
+    let ts: Vec<usize> = (0..8).map(|_| rng.random_range(0..n_train)).collect();
     let imgs = paste(obs.image.as_ref().expect("img"), texture, 30, 30).expect("paste");
     let obs = ObsBatch {
         image: Some(imgs),
@@ -461,6 +462,59 @@ fn the_clean_feature_term_holds_the_clean_embedding() {
     common::assert_significant_effect("ln(drift without / with the clean term)", &effects);
 }
 
+/// The clean task term enters the objective with its weight, and its gradient reaches the
+/// encoder: at the first step (same weights, same batch) the total with weight ν is the
+/// total without it plus ν times the reported clean task loss; at the second, the rest of
+/// the objective differs too (the first step moved the encoder differently). Its losses are
+/// reported when it is on and absent when it is off.
+#[test]
+fn the_clean_task_term_adds_the_clean_denoising_loss_with_its_weight() {
+    let d = data();
+    let texture = vec![0.9f32; 3 * 12 * 12];
+    let run = |nu: f64, steps| {
+        let (p, vm) = tiny(4);
+        let cfg = FinetuneConfig {
+            steps,
+            lr: 3e-3,
+            clean_task: nu,
+            batch_size: 4,
+            ..FinetuneConfig::default()
+        };
+        let mut losses = Vec::new();
+        let r = finetune_encoder(&p, &vm, &d, &texture, 12, &cfg, &mut |_, l| {
+            losses.push(l);
+            Ok(())
+        })
+        .expect("finetune");
+        (r, losses)
+    };
+    // Relative rounding of f32 sums of a few terms.
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-5 * a.abs().max(b.abs()).max(1.0);
+    let (off, off1) = run(0.0, 1);
+    let (on, on1) = run(10.0, 1);
+    assert_eq!(
+        (off.first_clean_task_loss, off.last_clean_task_loss),
+        (None, None)
+    );
+    let c1 = on.first_clean_task_loss.expect("on");
+    assert!(c1.is_finite() && c1 > 0.0, "clean task loss {c1}");
+    assert_eq!(on.last_clean_task_loss, Some(c1), "one step: first = last");
+    assert!(
+        close(on1[0] - off1[0], 10.0 * c1),
+        "with the term {} - without {} != 10 x {c1}",
+        on1[0],
+        off1[0]
+    );
+    // Two steps: the reported mean gives the second step's clean loss.
+    let (_, off2) = run(0.0, 2);
+    let (on, on2) = run(10.0, 2);
+    let c2 = 2.0 * on.first_clean_task_loss.expect("on") - c1;
+    assert!(
+        !close(on2[1] - off2[1], 10.0 * c2),
+        "the clean term's gradient changed nothing else at step 2"
+    );
+}
+
 #[test]
 fn a_failing_step_callback_stops_fine_tuning_and_bad_weights_are_refused() {
     let d = data();
@@ -493,6 +547,13 @@ fn a_failing_step_callback_stops_fine_tuning_and_bad_weights_are_refused() {
         let e = finetune_encoder(&p, &vm, &d, &texture, 12, &cfg, &mut |_, _| Ok(()))
             .expect_err("refused");
         assert!(e.to_string().contains("clean_features"), "{e}");
+        let task = FinetuneConfig {
+            clean_task: bad,
+            ..FinetuneConfig::default()
+        };
+        let e = finetune_encoder(&p, &vm, &d, &texture, 12, &task, &mut |_, _| Ok(()))
+            .expect_err("refused");
+        assert!(e.to_string().contains("clean_task"), "{e}");
     }
 }
 

@@ -258,6 +258,7 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
             crate::args::AnchorArg::Current => Anchor::Current,
         },
         clean_features: a.clean_features,
+        clean_task: a.clean_task,
         batch_size: a.batch_size,
         regenerate: a.regenerate,
         regenerate_step: a.regenerate_step,
@@ -322,6 +323,8 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
             "last_clean_drift": report.last_clean_drift,
             "first_patch_loss": report.first_patch_loss,
             "last_patch_loss": report.last_patch_loss,
+            "first_clean_task_loss": report.first_clean_task_loss,
+            "last_clean_task_loss": report.last_clean_task_loss,
         }, "seconds": secs,
     });
     std::fs::write(a.out.join("finetune.json"), format!("{summary:#}\n"))

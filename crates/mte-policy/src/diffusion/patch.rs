@@ -425,6 +425,11 @@ pub struct FinetuneConfig {
     /// default: the protocol trains on patched batches only, and nothing there keeps the
     /// clean embedding where the head expects it.
     pub clean_features: f64,
+    /// Weight ν of the clean task term `ν · L(f_θ(x))`: the frozen head's denoising loss
+    /// on the clean frames (the same windows, noise and timesteps as the patched task term).
+    /// An mte extension, 0 (off) by default: where the clean-feature term holds the
+    /// embedding near the original, this one holds the objective the head was trained for.
+    pub clean_task: f64,
     /// Windows per batch.
     pub batch_size: usize,
     /// Regenerate the patch against the current encoder every step (one ascent step).
@@ -443,6 +448,7 @@ impl Default for FinetuneConfig {
             consistency: 1.0,
             anchor: Anchor::Original,
             clean_features: 0.0,
+            clean_task: 0.0,
             batch_size: 16,
             regenerate: false,
             regenerate_step: 1.5e-3,
@@ -468,6 +474,7 @@ impl FinetuneConfig {
         for (name, v) in [
             ("consistency", self.consistency),
             ("clean_features", self.clean_features),
+            ("clean_task", self.clean_task),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(config_err(name, v, "a finite weight >= 0"));
@@ -505,6 +512,13 @@ pub struct FinetuneReport {
     /// See `first_patch_loss`.
     #[serde(default)]
     pub last_patch_loss: Option<f64>,
+    /// The clean task term's mean over the first and the last up to 100 steps; `None` when
+    /// the term is off.
+    #[serde(default)]
+    pub first_clean_task_loss: Option<f64>,
+    /// See `first_clean_task_loss`.
+    #[serde(default)]
+    pub last_clean_task_loss: Option<f64>,
     /// The patch at the end (changed only when regenerating), `(3, side, side)`.
     pub texture: Vec<f32>,
 }
@@ -575,8 +589,8 @@ pub fn finetune_encoder(
         .then(|| frozen_copy(policy, varmap))
         .transpose()?;
     let mut patch = Tensor::from_vec(texture.to_vec(), (3, side, side), dev)?;
-    let (mut losses, mut cons, mut drift, mut patch_losses) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut losses, mut cons, mut drift, mut patch_losses, mut clean_losses) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for step in 0..cfg.steps {
         let b = batch(policy, data, &win, cfg.batch_size, &mut rng)?;
         let clean = images(&b)?;
@@ -598,12 +612,18 @@ pub fn finetune_encoder(
         let f_att = policy.image_features(&attacked)?;
         let cond = policy.global_cond_from_features(&b.obs, Some(&f_att))?;
         let task = policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)?;
-        let (anchor, clean_drift) = clean_terms(policy, original.as_ref(), clean, cfg)?;
-        let consistency = (f_att - anchor)?.sqr()?.sum(D::Minus1)?.mean_all()?;
+        let terms = clean_terms(policy, original.as_ref(), clean, cfg)?;
+        let consistency = (f_att - terms.anchor)?.sqr()?.sum(D::Minus1)?.mean_all()?;
         let mut total = (task + (&consistency * cfg.consistency)?)?;
-        if let Some(d) = clean_drift {
+        if let Some(d) = terms.drift {
             total = (total + (&d * cfg.clean_features)?)?;
             drift.push(scalar(&d)?);
+        }
+        if let (true, Some(f)) = (cfg.clean_task > 0.0, terms.features) {
+            let cond = policy.global_cond_from_features(&b.obs, Some(&f))?;
+            let clean_task = policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)?;
+            total = (total + (&clean_task * cfg.clean_task)?)?;
+            clean_losses.push(scalar(&clean_task)?);
         }
         let grads = total.backward()?;
         // Only the encoder's variables are in the optimiser: the denoising head is frozen.
@@ -617,6 +637,7 @@ pub fn finetune_encoder(
         (first_last(&losses), first_last(&cons));
     let drift = (!drift.is_empty()).then(|| first_last(&drift));
     let patch_loss = (!patch_losses.is_empty()).then(|| first_last(&patch_losses));
+    let clean_loss = (!clean_losses.is_empty()).then(|| first_last(&clean_losses));
     Ok(FinetuneReport {
         steps: cfg.steps,
         encoder_tensors,
@@ -628,24 +649,35 @@ pub fn finetune_encoder(
         last_clean_drift: drift.map(|e| e.1),
         first_patch_loss: patch_loss.map(|e| e.0),
         last_patch_loss: patch_loss.map(|e| e.1),
+        first_clean_task_loss: clean_loss.map(|e| e.0),
+        last_clean_task_loss: clean_loss.map(|e| e.1),
         texture: patch.flatten_all()?.to_vec1::<f32>()?,
     })
 }
 
-/// The clean embedding the consistency term ties the patched one to (detached), and the
-/// clean-feature drift `mean ‖f_θ(x) − f_θ0(x)‖²` when that term is on: `original` is the
-/// frozen copy from before fine-tuning, present when the anchor or the term needs it.
+/// What the clean frames give the loss: the clean embedding the consistency term ties the
+/// patched one to (detached); the clean-feature drift `mean ‖f_θ(x) − f_θ0(x)‖²` when that
+/// term is on; and the tuned encoder's clean features (with their gradient) when the
+/// clean-feature or the clean task term needs them.
+struct CleanTerms {
+    anchor: Tensor,
+    drift: Option<Tensor>,
+    features: Option<Tensor>,
+}
+
+/// [`CleanTerms`]; `original` is the frozen copy from before fine-tuning, present when the
+/// anchor or the clean-feature term needs it.
 fn clean_terms(
     policy: &DiffusionPolicy,
     original: Option<&DiffusionPolicy>,
     clean: &Tensor,
     cfg: &FinetuneConfig,
-) -> Result<(Tensor, Option<Tensor>), PolicyError> {
+) -> Result<CleanTerms, PolicyError> {
     let keep_clean = cfg.clean_features > 0.0;
     let f_orig = original
         .map(|o| o.image_features(clean).map(|f| f.detach()))
         .transpose()?;
-    let f_now = (keep_clean || cfg.anchor == Anchor::Current)
+    let f_now = (keep_clean || cfg.clean_task > 0.0 || cfg.anchor == Anchor::Current)
         .then(|| policy.image_features(clean))
         .transpose()?;
     let anchor = match cfg.anchor {
@@ -653,11 +685,15 @@ fn clean_terms(
         Anchor::Current => f_now.as_ref().map(Tensor::detach),
     }
     .ok_or_else(|| config_err("anchor", cfg.anchor, "a clean embedding"))?;
-    let drift = match (keep_clean, f_now, f_orig) {
+    let drift = match (keep_clean, &f_now, f_orig) {
         (true, Some(now), Some(orig)) => Some((now - orig)?.sqr()?.sum(D::Minus1)?.mean_all()?),
         _ => None,
     };
-    Ok((anchor, drift))
+    Ok(CleanTerms {
+        anchor,
+        drift,
+        features: f_now,
+    })
 }
 
 /// A scalar tensor's value as f64.

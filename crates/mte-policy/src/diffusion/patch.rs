@@ -278,6 +278,13 @@ fn loss_with(policy: &DiffusionPolicy, b: &Batch, imgs: &Tensor) -> Result<Tenso
     policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)
 }
 
+/// The frozen head's denoising loss on batch `b` with the image features `f` in place of
+/// the encoder's (the same noise and timesteps whatever the features).
+fn head_loss(policy: &DiffusionPolicy, b: &Batch, f: &Tensor) -> Result<Tensor, PolicyError> {
+    let cond = policy.global_cond_from_features(&b.obs, Some(f))?;
+    policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)
+}
+
 fn frame_hw(policy: &DiffusionPolicy) -> Result<(usize, usize), PolicyError> {
     match policy.config().image_shape() {
         Some([_, h, w]) => Ok((h, w)),
@@ -610,8 +617,7 @@ pub fn finetune_encoder(
         let attacked = paste(clean, &patch, x, y)?;
         // The encoder runs once on the attacked batch: its features feed both terms.
         let f_att = policy.image_features(&attacked)?;
-        let cond = policy.global_cond_from_features(&b.obs, Some(&f_att))?;
-        let task = policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)?;
+        let task = head_loss(policy, &b, &f_att)?;
         let terms = clean_terms(policy, original.as_ref(), clean, cfg)?;
         let consistency = (f_att - terms.anchor)?.sqr()?.sum(D::Minus1)?.mean_all()?;
         let mut total = (task + (&consistency * cfg.consistency)?)?;
@@ -620,8 +626,7 @@ pub fn finetune_encoder(
             drift.push(scalar(&d)?);
         }
         if let (true, Some(f)) = (cfg.clean_task > 0.0, terms.features) {
-            let cond = policy.global_cond_from_features(&b.obs, Some(&f))?;
-            let clean_task = policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)?;
+            let clean_task = head_loss(policy, &b, &f)?;
             total = (total + (&clean_task * cfg.clean_task)?)?;
             clean_losses.push(scalar(&clean_task)?);
         }

@@ -228,6 +228,11 @@ pub struct TrainActArgs {
     /// `{"chunk_size": 20, "n_action_steps": 20}`); an unknown field is an error.
     #[arg(long, value_name = "FILE")]
     pub config: Option<PathBuf>,
+    /// Observation to condition on: `keypoints` (agent position + 16 block keypoints) or
+    /// `image` (agent position + the 96 x 96 frame through ResNet-18 with frozen BatchNorm;
+    /// the dataset needs `--obs state,keypoints,pixels`).
+    #[arg(long, value_enum, default_value_t = PolicyObsArg::Keypoints)]
+    pub obs: PolicyObsArg,
     /// Optimiser steps in total (a resumed run continues to this count).
     #[arg(long, default_value_t = 20000)]
     pub steps: usize,

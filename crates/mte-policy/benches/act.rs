@@ -9,7 +9,7 @@ use std::cell::RefCell;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarMap};
-use mte_policy::act::model::{Dropout, VaeInput};
+use mte_policy::act::model::{ActInputs, Dropout, VaeInput};
 use mte_policy::act::{ActConfig, ActPolicy};
 use mte_policy::{Observation, Stats, StatsMap};
 use rand::SeedableRng;
@@ -80,7 +80,15 @@ fn train_step(bencher: divan::Bencher, preset: &str) {
         };
         let out = p
             .net()
-            .forward(Some(&state), Some(&env), Some(&vae), Some(&d))
+            .forward(
+                &ActInputs {
+                    state: Some(&state),
+                    env: Some(&env),
+                    images: &[],
+                },
+                Some(&vae),
+                Some(&d),
+            )
             .expect("forward");
         let (loss, _, _) = p.net().loss(&out, &actions, &is_pad).expect("loss");
         opt.backward_step(&loss).expect("step");

@@ -1,23 +1,30 @@
-//! LeRobot's `DiffusionRgbEncoder`: centre/random crop, torchvision ResNet-18 without its
-//! last two children, every BatchNorm replaced by GroupNorm(C / 16), spatial softmax with a
-//! 1x1 keypoint convolution, then Linear + ReLU. Keys mirror LeRobot's under
-//! `diffusion.rgb_encoder.` (`backbone.0` conv1, `backbone.1` norm1, `backbone.4..7` layers
-//! 1-4, `pool.nets`, `out`).
+//! ResNet-18 backbones and LeRobot's `DiffusionRgbEncoder`.
 //!
-//! Input: `(B, 3, H, W)` normalised images; output `(B, 2 * num_keypoints)`.
+//! [`ResNet18`] is torchvision's ResNet-18 without its pooling and classifier, at a chosen
+//! width, with one of two normalisations ([`BackboneNorm`]): GroupNorm(C / 16) replacing every
+//! BatchNorm (Diffusion Policy's `use_group_norm`) or torchvision's `FrozenBatchNorm2d` (ACT).
+//! Its tensors are named as the owning model's state dict names them ([`BackboneNames`]).
+//!
+//! [`RgbEncoder`] is Diffusion Policy's encoder: centre/random crop, the GroupNorm backbone,
+//! spatial softmax with a 1x1 keypoint convolution, then Linear + ReLU. Keys mirror LeRobot's
+//! under `diffusion.rgb_encoder.` (`backbone.0` conv1, `backbone.1` norm1, `backbone.4..7`
+//! layers 1-4, `pool.nets`, `out`). Input: `(B, 3, H, W)` normalised images; output
+//! `(B, 2 * num_keypoints)`.
 //!
 //! The backbone's width is a parameter (`vision_backbone_width`: 64 is torchvision's
-//! ResNet-18, the `cpu` preset uses 16). Convolutions, GroupNorm and the stem's max pool run
+//! ResNet-18, the `cpu` presets use 16). Convolutions, GroupNorm and the stem's max pool run
 //! on mte's fused CPU kernels ([`crate::kernels`]), which have fast backward passes; so do
 //! the ReLUs (the same bits as candle's).
 
 use crate::kernels::{Conv2d, GroupNorm, max_pool_3x3_s2, relu};
 use candle_core::{Module, Result, Tensor};
-use candle_nn::VarBuilder;
+use candle_nn::{Init, VarBuilder};
 
 use crate::kernels::{Linear, Products};
 
 const GN_EPS: f64 = 1e-5;
+/// torchvision's `FrozenBatchNorm2d` default.
+const FROZEN_BN_EPS: f32 = 1e-5;
 
 fn conv(
     cin: usize,
@@ -30,35 +37,129 @@ fn conv(
     Conv2d::new(cin, cout, k, stride, pad, false, vb)
 }
 
-fn gn(c: usize, vb: VarBuilder) -> Result<GroupNorm> {
-    GroupNorm::new(c / 16, c, GN_EPS, vb)
+/// The normalisation layers of a [`ResNet18`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BackboneNorm {
+    /// GroupNorm with C / 16 groups, trained (Diffusion Policy's `use_group_norm`; the width
+    /// must be a multiple of 16).
+    Group,
+    /// torchvision's `FrozenBatchNorm2d`: fixed statistics and affine, never trained (ACT).
+    FrozenBatch,
 }
 
-/// torchvision's `BasicBlock` with GroupNorm.
+/// How a state dict names a [`ResNet18`]'s tensors (below the backbone's prefix).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BackboneNames {
+    /// `nn.Sequential(*children[:-2])`, as Diffusion Policy keeps it: stem `0` and `1`,
+    /// layers `4` to `7`.
+    Sequential,
+    /// torchvision's attribute names, as ACT's `IntermediateLayerGetter` keeps them: `conv1`,
+    /// `bn1`, `layer1` to `layer4`.
+    Torchvision,
+}
+
+impl BackboneNames {
+    fn stem(self) -> (&'static str, &'static str) {
+        match self {
+            BackboneNames::Sequential => ("0", "1"),
+            BackboneNames::Torchvision => ("conv1", "bn1"),
+        }
+    }
+
+    /// Layer `i` (0-based).
+    fn layer(self, i: usize) -> String {
+        match self {
+            BackboneNames::Sequential => (4 + i).to_string(),
+            BackboneNames::Torchvision => format!("layer{}", i + 1),
+        }
+    }
+}
+
+/// torchvision's `FrozenBatchNorm2d` (eps 1e-5): `x * scale + shift` per channel, with
+/// `scale = weight / sqrt(running_var + eps)` and `shift = bias - running_mean * scale`,
+/// computed in f32 in torchvision's order. Its four tensors are buffers: the products are
+/// detached, so no gradient reaches them and no optimiser moves them. Fresh ones start as the
+/// identity statistics (weight 1, bias 0, mean 0, variance 1).
 #[derive(Clone, Debug)]
-pub struct BasicBlock {
+pub struct FrozenBatchNorm {
+    scale: Tensor,
+    shift: Tensor,
+}
+
+impl FrozenBatchNorm {
+    /// Load (or create) the `weight`, `bias`, `running_mean` and `running_var` of `c` channels.
+    pub fn new(c: usize, vb: VarBuilder) -> Result<Self> {
+        let get = |name: &str, v: f64| vb.get_with_hints(c, name, Init::Const(v));
+        let (w, b) = (get("weight", 1.0)?, get("bias", 0.0)?);
+        let (m, v) = (get("running_mean", 0.0)?, get("running_var", 1.0)?);
+        let scale = (w * (v + f64::from(FROZEN_BN_EPS))?.sqrt()?.recip()?)?.detach();
+        let shift = (b - (m * &scale)?)?.detach();
+        Ok(Self {
+            scale: scale.reshape((1, c, 1, 1))?,
+            shift: shift.reshape((1, c, 1, 1))?,
+        })
+    }
+
+    /// `(B, C, H, W)` in, the same shape out.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        x.broadcast_mul(&self.scale)?.broadcast_add(&self.shift)
+    }
+}
+
+/// One normalisation layer of a backbone.
+#[derive(Clone, Debug)]
+enum Norm {
+    Group(GroupNorm),
+    Frozen(FrozenBatchNorm),
+}
+
+impl Norm {
+    fn new(kind: BackboneNorm, c: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(match kind {
+            BackboneNorm::Group => Norm::Group(GroupNorm::new(c / 16, c, GN_EPS, vb)?),
+            BackboneNorm::FrozenBatch => Norm::Frozen(FrozenBatchNorm::new(c, vb)?),
+        })
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        match self {
+            Norm::Group(n) => n.forward(x),
+            Norm::Frozen(n) => n.forward(x),
+        }
+    }
+}
+
+/// torchvision's `BasicBlock`.
+#[derive(Clone, Debug)]
+struct BasicBlock {
     conv1: Conv2d,
-    bn1: GroupNorm,
+    bn1: Norm,
     conv2: Conv2d,
-    bn2: GroupNorm,
-    downsample: Option<(Conv2d, GroupNorm)>,
+    bn2: Norm,
+    downsample: Option<(Conv2d, Norm)>,
 }
 
 impl BasicBlock {
-    fn new(cin: usize, cout: usize, stride: usize, vb: VarBuilder) -> Result<Self> {
+    fn new(
+        cin: usize,
+        cout: usize,
+        stride: usize,
+        norm: BackboneNorm,
+        vb: VarBuilder,
+    ) -> Result<Self> {
         let downsample = if stride != 1 || cin != cout {
             Some((
                 conv(cin, cout, 1, stride, 0, vb.pp("downsample.0"))?,
-                gn(cout, vb.pp("downsample.1"))?,
+                Norm::new(norm, cout, vb.pp("downsample.1"))?,
             ))
         } else {
             None
         };
         Ok(BasicBlock {
             conv1: conv(cin, cout, 3, stride, 1, vb.pp("conv1"))?,
-            bn1: gn(cout, vb.pp("bn1"))?,
+            bn1: Norm::new(norm, cout, vb.pp("bn1"))?,
             conv2: conv(cout, cout, 3, 1, 1, vb.pp("conv2"))?,
-            bn2: gn(cout, vb.pp("bn2"))?,
+            bn2: Norm::new(norm, cout, vb.pp("bn2"))?,
             downsample,
         })
     }
@@ -74,12 +175,105 @@ impl BasicBlock {
     }
 }
 
+/// A camera frame as stored (RGB u8, `h x w x 3`, row-major) appended to `out` as a
+/// network reads it: `(3, h, w)` channel-major f32 in [0, 1] (`v / 255`).
+///
+/// # Errors
+/// A frame of another length, naming both.
+pub fn push_chw(
+    px: &[u8],
+    h: usize,
+    w: usize,
+    out: &mut Vec<f32>,
+) -> std::result::Result<(), String> {
+    if px.len() != 3 * h * w {
+        return Err(format!("{} bytes, expected {h}x{w}x3 RGB", px.len()));
+    }
+    let start = out.len();
+    out.resize(start + 3 * h * w, 0.0);
+    let chw = &mut out[start..];
+    for (i, rgb) in px.chunks_exact(3).enumerate() {
+        for (c, &v) in rgb.iter().enumerate() {
+            chw[c * h * w + i] = f32::from(v) / 255.0;
+        }
+    }
+    Ok(())
+}
+
+/// torchvision's ResNet-18 up to `layer4` (no pooling, no classifier): a `(B, 3, H, W)`
+/// image in, the `(B, 8 w0, H / 32, W / 32)` feature map out (sides rounded up at each
+/// stride-2 stage).
+#[derive(Clone, Debug)]
+pub struct ResNet18 {
+    conv1: Conv2d,
+    bn1: Norm,
+    layers: Vec<Vec<BasicBlock>>,
+    out_channels: usize,
+}
+
+impl ResNet18 {
+    /// Build/load at stem width `w0` (layers `w0, 2 w0, 4 w0, 8 w0`; torchvision's is 64)
+    /// with `norm`, its tensors named by `names` under `vb`.
+    pub fn new(
+        w0: usize,
+        norm: BackboneNorm,
+        names: BackboneNames,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        let mut layers = Vec::new();
+        let mut cin = w0;
+        for (i, w) in [w0, 2 * w0, 4 * w0, 8 * w0].into_iter().enumerate() {
+            let stride = if i == 0 { 1 } else { 2 };
+            let lb = vb.pp(names.layer(i));
+            layers.push(vec![
+                BasicBlock::new(cin, w, stride, norm, lb.pp("0"))?,
+                BasicBlock::new(w, w, 1, norm, lb.pp("1"))?,
+            ]);
+            cin = w;
+        }
+        let (c1, n1) = names.stem();
+        Ok(Self {
+            conv1: conv(3, w0, 7, 2, 3, vb.pp(c1))?,
+            bn1: Norm::new(norm, w0, vb.pp(n1))?,
+            layers,
+            out_channels: 8 * w0,
+        })
+    }
+
+    /// Channels of the feature map (8 x the stem width; ResNet-18: 512).
+    pub fn out_channels(&self) -> usize {
+        self.out_channels
+    }
+
+    /// The activation after the stem (conv, norm, ReLU, max pool) and after each of the four
+    /// layers.
+    pub fn stages(&self, x: &Tensor, products: Products) -> Result<Vec<Tensor>> {
+        let h = relu(&self.bn1.forward(&self.conv1.forward(x, products)?)?)?;
+        // Max pool 3x3, stride 2, padding 1: after ReLU every value is >= 0, so zero padding
+        // is equivalent to torch's -inf padding.
+        let mut h = max_pool_3x3_s2(&h)?;
+        let mut out = vec![h.clone()];
+        for layer in &self.layers {
+            for block in layer {
+                h = block.forward(&h, products)?;
+            }
+            out.push(h.clone());
+        }
+        Ok(out)
+    }
+
+    /// The feature map after `layer4`.
+    pub fn forward(&self, x: &Tensor, products: Products) -> Result<Tensor> {
+        self.stages(x, products)?
+            .pop()
+            .ok_or_else(|| candle_core::Error::Msg("backbone produced no stage".into()))
+    }
+}
+
 /// The RGB encoder.
 #[derive(Clone, Debug)]
 pub struct RgbEncoder {
-    conv1: Conv2d,
-    bn1: GroupNorm,
-    layers: Vec<Vec<BasicBlock>>,
+    backbone: ResNet18,
     keypoints: Conv2d,
     out: Linear,
     crop: Option<[usize; 2]>,
@@ -100,24 +294,15 @@ impl RgbEncoder {
         num_kp: usize,
         vb: VarBuilder,
     ) -> Result<Self> {
-        let b = vb.pp("backbone");
-        let mut layers = Vec::new();
-        let widths = [w0, 2 * w0, 4 * w0, 8 * w0];
-        let mut cin = w0;
-        for (i, &w) in widths.iter().enumerate() {
-            let stride = if i == 0 { 1 } else { 2 };
-            let lb = b.pp(4 + i);
-            layers.push(vec![
-                BasicBlock::new(cin, w, stride, lb.pp("0"))?,
-                BasicBlock::new(w, w, 1, lb.pp("1"))?,
-            ]);
-            cin = w;
-        }
+        let backbone = ResNet18::new(
+            w0,
+            BackboneNorm::Group,
+            BackboneNames::Sequential,
+            vb.pp("backbone"),
+        )?;
         let keypoints = Conv2d::new(8 * w0, num_kp, 1, 1, 0, true, vb.pp("pool.nets"))?;
         Ok(RgbEncoder {
-            conv1: conv(3, w0, 7, 2, 3, b.pp("0"))?,
-            bn1: gn(w0, b.pp("1"))?,
-            layers,
+            backbone,
             keypoints,
             out: crate::kernels::linear(2 * num_kp, 2 * num_kp, vb.pp("out"))?,
             crop,
@@ -166,28 +351,14 @@ impl RgbEncoder {
     /// The backbone's activation after the stem (conv, norm, ReLU, max pool) and after each
     /// of the four layers, for a cropped batch.
     pub fn backbone_stages(&self, x: &Tensor, products: Products) -> Result<Vec<Tensor>> {
-        let h = relu(&self.bn1.forward(&self.conv1.forward(x, products)?)?)?;
-        // Max pool 3x3, stride 2, padding 1: after ReLU every value is >= 0, so zero padding
-        // is equivalent to torch's -inf padding.
-        let mut h = max_pool_3x3_s2(&h)?;
-        let mut out = vec![h.clone()];
-        for layer in &self.layers {
-            for block in layer {
-                h = block.forward(&h, products)?;
-            }
-            out.push(h.clone());
-        }
-        Ok(out)
+        self.backbone.stages(x, products)
     }
 
     /// The intermediate activations of the encoder on a cropped batch: the backbone's
     /// feature map `(B, 512, h, w)`, the spatial-softmax keypoints `(B, K, 2)` and the
     /// output feature `(B, 2K)` (for monitors, probes and attacks).
     pub fn forward_parts(&self, x: &Tensor, products: Products) -> Result<EncoderParts> {
-        let h = self
-            .backbone_stages(x, products)?
-            .pop()
-            .ok_or_else(|| candle_core::Error::Msg("backbone produced no stage".into()))?;
+        let h = self.backbone.forward(x, products)?;
         let f = self.keypoints.forward(&h, products)?;
         let (b, k, fh, fw) = f.dims4()?;
         // The composed softmax, not candle's fused `softmax_last_dim`: the fused kernel has

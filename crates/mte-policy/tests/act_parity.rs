@@ -8,7 +8,7 @@ use std::path::Path;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
-use mte_policy::act::model::VaeInput;
+use mte_policy::act::model::{ActInputs, VaeInput};
 use mte_policy::act::{ActConfig, ActNet};
 
 fn fixture() -> (ActNet, HashMap<String, Tensor>) {
@@ -19,6 +19,14 @@ fn fixture() -> (ActNet, HashMap<String, Tensor>) {
     let io = candle_core::safetensors::load(dir.join("io.safetensors"), &Device::Cpu).expect("io");
     let vb = VarBuilder::from_tensors(weights, DType::F32, &Device::Cpu).pp("model");
     (ActNet::new(config, vb).expect("net"), io)
+}
+
+fn inputs(io: &HashMap<String, Tensor>) -> ActInputs<'_> {
+    ActInputs {
+        state: Some(&io["state"]),
+        env: Some(&io["env"]),
+        images: &[],
+    }
 }
 
 fn max_gap(a: &Tensor, b: &Tensor) -> f32 {
@@ -42,9 +50,7 @@ const TOL: f32 = 1e-5;
 #[test]
 fn inference_matches_lerobot() {
     let (net, io) = fixture();
-    let out = net
-        .forward(Some(&io["state"]), Some(&io["env"]), None, None)
-        .expect("forward");
+    let out = net.forward(&inputs(&io), None, None).expect("forward");
     let gap = max_gap(&out.actions, &io["actions"]);
     assert!(gap < TOL, "inference actions differ by {gap}");
     assert!(out.latent.is_none());
@@ -59,7 +65,7 @@ fn training_pass_through_the_cvae_matches_lerobot() {
         eps: &io["eps"],
     };
     let out = net
-        .forward(Some(&io["state"]), Some(&io["env"]), Some(&vae), None)
+        .forward(&inputs(&io), Some(&vae), None)
         .expect("forward");
     let (mu, ls) = out.latent.as_ref().expect("latent");
     for (name, got, want) in [
@@ -76,7 +82,7 @@ fn training_pass_through_the_cvae_matches_lerobot() {
         ..vae
     };
     let out2 = net
-        .forward(Some(&io["state"]), Some(&io["env"]), Some(&unmasked), None)
+        .forward(&inputs(&io), Some(&unmasked), None)
         .expect("forward");
     let moved = max_gap(
         out2.latent

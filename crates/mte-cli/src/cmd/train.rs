@@ -149,11 +149,20 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
         PresetArg::Cpu => ActConfig::cpu(),
         PresetArg::Paper => ActConfig::paper(),
     };
+    let obs = match a.obs {
+        PolicyObsArg::Keypoints => ObsKind::Keypoints,
+        PolicyObsArg::Image => ObsKind::Image,
+    };
+    // The arrays and their statistics, as a Diffusion Policy of the same observation reads
+    // them (the image's per-channel mean and std included).
+    let dp = DiffusionConfig::cpu(obs);
+    if let Some(shape) = dp.image_shape() {
+        config = config.with_camera("observation.image", shape);
+    }
     if let Some(path) = &a.config {
         config = config.with_overrides(&read_overrides(path)?)?;
     }
-    // The keypoint arrays and their statistics, as a keypoint Diffusion Policy reads them.
-    let data = load_train_data(&a.data, &DiffusionConfig::cpu(ObsKind::Keypoints))?;
+    let data = load_train_data(&a.data, &dp)?;
     let tc = ActTrainConfig {
         steps: a.steps,
         batch_size: a.batch_size,

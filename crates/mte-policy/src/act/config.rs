@@ -2,8 +2,8 @@
 //! meanings are LeRobot 0.4.4's `ACTConfig`), with the two presets and `validate()`.
 //!
 //! mte's ACT reads state observations (`observation.state` and, on PushT,
-//! `observation.environment_state`); checkpoints with image features are refused with a typed
-//! error (the ResNet-18 backbone with frozen BatchNorm is not ported yet).
+//! `observation.environment_state`) and camera frames (VISUAL features, each `[3, H, W]`,
+//! through a ResNet-18 with frozen BatchNorm; cameras in the order of their feature names).
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -34,8 +34,19 @@ pub struct ActConfig {
     /// Normalisation per feature kind (keys VISUAL, STATE, ENV, ACTION): LeRobot's default
     /// is MEAN_STD for all.
     pub normalization_mapping: BTreeMap<String, NormMode>,
-    /// Vision backbone name (unused without image features).
+    /// Vision backbone name (LeRobot: a torchvision ResNet; mte: "resnet18").
     pub vision_backbone: String,
+    /// torchvision weights the backbone starts from in LeRobot (e.g.
+    /// "ResNet18_Weights.IMAGENET1K_V1"). mte downloads nothing: a loaded checkpoint carries
+    /// its backbone, and training starts from torchvision's initialisation or `--init`.
+    pub pretrained_backbone_weights: Option<String>,
+    /// Dilate layer4 instead of striding it (LeRobot's option; mte: false only).
+    pub replace_final_stride_with_dilation: bool,
+    /// mte extension: the backbone's stem width (layers `w, 2w, 4w, 8w`); torchvision's
+    /// ResNet-18 is 64, which LeRobot always uses. Absent from LeRobot's configs, so 64 on
+    /// load; not written at 64, so the paper preset stays LeRobot's schema.
+    #[serde(skip_serializing_if = "crate::diffusion::config::is_resnet18_width")]
+    pub vision_backbone_width: usize,
     /// Pre-LayerNorm transformer layers (LeRobot and the original: false, post-norm).
     pub pre_norm: bool,
     /// Transformer width.
@@ -65,6 +76,8 @@ pub struct ActConfig {
     pub kl_weight: f64,
     /// AdamW learning rate.
     pub optimizer_lr: f64,
+    /// AdamW learning rate of the backbone's parameters (LeRobot: the same as `optimizer_lr`).
+    pub optimizer_lr_backbone: f64,
     /// AdamW weight decay.
     pub optimizer_weight_decay: f64,
 }
@@ -108,6 +121,9 @@ impl ActConfig {
                 .collect(),
             normalization_mapping: norm.into_iter().collect(),
             vision_backbone: "resnet18".into(),
+            pretrained_backbone_weights: Some("ResNet18_Weights.IMAGENET1K_V1".into()),
+            replace_final_stride_with_dilation: false,
+            vision_backbone_width: crate::diffusion::config::RESNET18_WIDTH,
             pre_norm: false,
             dim_model: 512,
             n_heads: 8,
@@ -122,15 +138,21 @@ impl ActConfig {
             dropout: 0.1,
             kl_weight: 10.0,
             optimizer_lr: 1e-5,
+            optimizer_lr_backbone: 1e-5,
             optimizer_weight_decay: 1e-4,
         }
     }
 
     /// The `cpu` preset: the same architecture at width 128 (4 heads, feed-forward 512, 2
     /// encoder and 2 CVAE-encoder layers, chunk 100), trainable on 2 CPU cores; lr 1e-4 (the
-    /// paper preset's 1e-5 is tuned for ImageNet-initialised backbones and long runs).
+    /// paper preset's 1e-5 is tuned for ImageNet-initialised backbones and long runs); with
+    /// images, a ResNet-18 at a quarter of torchvision's width (stem 16, as the image
+    /// Diffusion Policy's `cpu` preset) starting from torchvision's initialisation.
     pub fn cpu() -> Self {
         ActConfig {
+            pretrained_backbone_weights: None,
+            vision_backbone_width: 16,
+            optimizer_lr_backbone: 1e-4,
             dim_model: 128,
             n_heads: 4,
             dim_feedforward: 512,
@@ -140,6 +162,21 @@ impl ActConfig {
             optimizer_lr: 1e-4,
             ..Self::paper()
         }
+    }
+
+    /// `self` reading the robot state and one camera `name` of `[3, H, W]` frames instead of
+    /// the environment state (PushT's image observation).
+    pub fn with_camera(mut self, name: &str, shape: [usize; 3]) -> Self {
+        self.input_features
+            .retain(|_, f| f.kind != FeatureType::Env && f.kind != FeatureType::Visual);
+        self.input_features.insert(
+            name.to_string(),
+            PolicyFeature {
+                kind: FeatureType::Visual,
+                shape: shape.to_vec(),
+            },
+        );
+        self
     }
 
     /// Override fields of `self` with those present in the JSON object `patch` (LeRobot's
@@ -203,25 +240,82 @@ impl ActConfig {
                 "a probability in [0, 1)",
             ));
         }
-        if let Some((name, _)) = self
-            .input_features
-            .iter()
-            .find(|(_, f)| f.kind == FeatureType::Visual)
-        {
-            return Err(config_err(
-                "input_features",
-                name,
-                "state features only (mte's ACT has no image backbone yet)",
-            ));
-        }
-        if self.env_state_dim().is_none() && self.state_dim().is_none() {
+        self.validate_images()?;
+        if self.env_state_dim().is_none() && self.state_dim().is_none() && !self.has_images() {
             return Err(config_err(
                 "input_features",
                 self.input_features.keys().collect::<Vec<_>>(),
-                "observation.state and/or observation.environment_state",
+                "observation.state, observation.environment_state and/or an image",
             ));
         }
         self.action_dim().map(|_| ())
+    }
+
+    /// The backbone's fields, and each camera's shape, when there are cameras.
+    fn validate_images(&self) -> Result<(), PolicyError> {
+        let cameras = self.image_features()?;
+        if cameras.is_empty() {
+            return Ok(());
+        }
+        if self.vision_backbone != "resnet18" {
+            return Err(config_err(
+                "vision_backbone",
+                &self.vision_backbone,
+                "\"resnet18\" (the one backbone mte ports)",
+            ));
+        }
+        if self.replace_final_stride_with_dilation {
+            return Err(config_err(
+                "replace_final_stride_with_dilation",
+                true,
+                "false (mte's convolutions have no dilation)",
+            ));
+        }
+        if !self.dim_model.is_multiple_of(4) {
+            return Err(config_err(
+                "dim_model",
+                self.dim_model,
+                "a multiple of 4 with cameras (the 2-D position embedding pairs sines and cosines of x and y)",
+            ));
+        }
+        if self.vision_backbone_width == 0 {
+            return Err(config_err("vision_backbone_width", 0, ">= 1"));
+        }
+        if !(self.optimizer_lr_backbone.is_finite() && self.optimizer_lr_backbone >= 0.0) {
+            return Err(config_err(
+                "optimizer_lr_backbone",
+                self.optimizer_lr_backbone,
+                "a finite rate >= 0",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Whether any input is a camera.
+    pub fn has_images(&self) -> bool {
+        self.input_features
+            .values()
+            .any(|f| f.kind == FeatureType::Visual)
+    }
+
+    /// The cameras `(name, [3, H, W])` in the order of their names (LeRobot stacks them in
+    /// its config's order, which for one camera is the same).
+    ///
+    /// # Errors
+    /// A camera whose shape is not three channels of at least 1 x 1 px.
+    pub fn image_features(&self) -> Result<Vec<(String, [usize; 3])>, PolicyError> {
+        self.input_features
+            .iter()
+            .filter(|(_, f)| f.kind == FeatureType::Visual)
+            .map(|(name, f)| match f.shape.as_slice() {
+                &[3, h, w] if h > 0 && w > 0 => Ok((name.clone(), [3, h, w])),
+                other => Err(config_err(
+                    "input_features",
+                    format!("{name}: {other:?}"),
+                    "an RGB image shape [3, H, W]",
+                )),
+            })
+            .collect()
     }
 
     fn dim_of(&self, kind: FeatureType) -> Option<usize> {
@@ -290,8 +384,44 @@ mod tests {
                 shape: vec![3, 96, 96],
             },
         );
-        let e = img.validate().expect_err("image").to_string();
-        assert!(e.contains("no image backbone"), "{e}");
+        img.validate().expect("a camera is an input");
+        assert_eq!(
+            img.image_features().expect("shape"),
+            vec![("observation.image".to_string(), [3, 96, 96])]
+        );
+        for (bad, field) in [
+            (
+                ActConfig {
+                    vision_backbone: "resnet34".into(),
+                    ..img.clone()
+                },
+                "vision_backbone",
+            ),
+            (
+                ActConfig {
+                    replace_final_stride_with_dilation: true,
+                    ..img.clone()
+                },
+                "replace_final_stride_with_dilation",
+            ),
+            (
+                ActConfig {
+                    vision_backbone_width: 0,
+                    ..img.clone()
+                },
+                "vision_backbone_width",
+            ),
+        ] {
+            let e = bad.validate().expect_err(field).to_string();
+            assert!(e.contains(field), "{e}");
+        }
+        let mut grey = img.clone();
+        grey.input_features
+            .get_mut("observation.image")
+            .expect("camera")
+            .shape = vec![1, 96, 96];
+        let e = grey.validate().expect_err("one channel").to_string();
+        assert!(e.contains("[1, 96, 96]"), "{e}");
         assert_eq!(ActConfig::paper().state_dim(), Some(2));
         assert_eq!(ActConfig::paper().env_state_dim(), Some(16));
     }

@@ -1,7 +1,9 @@
-//! The ACT network (Zhao et al., as LeRobot 0.4.4 implements it) on candle, state inputs.
+//! The ACT network (Zhao et al., as LeRobot 0.4.4 implements it) on candle.
 //!
 //! Tokens of the transformer encoder: `[latent, robot state, environment state]`, each a
-//! linear projection to `dim_model`, with a learned 1-D position embedding; the decoder's
+//! linear projection to `dim_model`, with a learned 1-D position embedding, then, per camera,
+//! the `h x w` cells of the ResNet-18 feature map (frozen BatchNorm, layer4), each projected
+//! by a 1x1 convolution, row by row, with LeRobot's fixed 2-D sinusoidal embedding; the decoder's
 //! `chunk_size` queries start at zero with a learned position embedding (DETR's object
 //! queries), cross-attend to the encoder, and a linear head maps them to actions. Training
 //! adds the CVAE encoder over `[cls, robot state, actions]` (fixed sinusoidal positions,
@@ -20,7 +22,8 @@ use candle_nn::{Init, Linear, Module, VarBuilder};
 use super::config::ActConfig;
 pub use crate::attention::Dropout;
 use crate::attention::{Attention, FeedForward, LayerNorm, drop, linear3};
-use crate::kernels::Products;
+use crate::kernels::{Conv2d, Products};
+use crate::vision::{BackboneNames, BackboneNorm, ResNet18};
 
 /// How a pass computes its products: per sample (batch-invariant) at inference, fused in
 /// training (recognised by its dropout).
@@ -232,8 +235,85 @@ pub fn sinusoidal_table(n: usize, dim: usize) -> Vec<f32> {
     out
 }
 
+/// LeRobot's `ACTSinusoidalPositionEmbedding2d` for an `h x w` feature map, as rows `(h w, dm)`
+/// in token order (row-major over (y, x)). With `D = dm / 2` and positions `1..=h` scaled to
+/// `y / (h + 1e-6) * 2 pi` (the same for x), channel `2p` of the first `D` is
+/// `sin(y / 10000^(2p / D))` and channel `2p + 1` its cosine; the last `D` are the same of x.
+/// The arithmetic follows PyTorch's f32 order; sines and cosines are taken in f64 and
+/// rounded (PyTorch's are within an ulp of that).
+pub fn sinusoidal_2d(h: usize, w: usize, dm: usize) -> Vec<f32> {
+    let d = dm / 2;
+    let two_pi = std::f64::consts::TAU as f32;
+    let freq: Vec<f32> = (0..d)
+        .map(|i| 10000f32.powf((2 * (i / 2)) as f32 / d as f32))
+        .collect();
+    let scaled = |p: usize, n: usize| (p + 1) as f32 / (n as f32 + 1e-6) * two_pi;
+    let mut out = Vec::with_capacity(h * w * dm);
+    for y in 0..h {
+        for x in 0..w {
+            for pos in [scaled(y, h), scaled(x, w)] {
+                out.extend(freq.iter().enumerate().map(|(i, f)| {
+                    let a = f64::from(pos / f);
+                    (if i % 2 == 0 { a.sin() } else { a.cos() }) as f32
+                }));
+            }
+        }
+    }
+    out
+}
+
+/// The camera path: backbone, projection to `dim_model`.
+struct Vision {
+    backbone: ResNet18,
+    proj: Conv2d,
+}
+
+impl Vision {
+    fn new(c: &ActConfig, vb: &VarBuilder) -> Result<Self> {
+        let backbone = ResNet18::new(
+            c.vision_backbone_width,
+            BackboneNorm::FrozenBatch,
+            BackboneNames::Torchvision,
+            vb.pp("backbone"),
+        )?;
+        let proj = Conv2d::new(
+            backbone.out_channels(),
+            c.dim_model,
+            1,
+            1,
+            0,
+            true,
+            vb.pp("encoder_img_feat_input_proj"),
+        )?;
+        Ok(Self { backbone, proj })
+    }
+
+    /// The tokens `(B, h w, dm)` and their position embedding `(1, h w, dm)` of one camera's
+    /// normalised frames `(B, 3, H, W)`.
+    fn tokens(&self, img: &Tensor, p: Products) -> Result<(Tensor, Tensor)> {
+        let f = self.proj.forward(&self.backbone.forward(img, p)?, p)?;
+        let (b, dm, h, w) = f.dims4()?;
+        let tokens = f.reshape((b, dm, h * w))?.transpose(1, 2)?.contiguous()?;
+        let pos = Tensor::from_vec(sinusoidal_2d(h, w, dm), (1, h * w, dm), img.device())?;
+        Ok((tokens, pos))
+    }
+}
+
+/// The normalised observations of a batch, as the config has them.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ActInputs<'a> {
+    /// Robot state `(B, s)`.
+    pub state: Option<&'a Tensor>,
+    /// Environment state `(B, e)`.
+    pub env: Option<&'a Tensor>,
+    /// One `(B, 3, H, W)` batch of normalised frames per camera, in the config's order.
+    pub images: &'a [Tensor],
+}
+
 /// The ACT network (weights under `model.` in LeRobot's checkpoints).
 pub struct ActNet {
+    vision: Option<Vision>,
+    cameras: usize,
     config: ActConfig,
     vae: Option<VaeEncoder>,
     encoder: Encoder,
@@ -289,7 +369,14 @@ impl ActNet {
         let decoder = (0..c.n_decoder_layers)
             .map(|i| DecoderLayer::new(c, vb.pp(format!("decoder.layers.{i}"))))
             .collect::<Result<_>>()?;
+        let vision = if c.has_images() {
+            Some(Vision::new(c, &vb)?)
+        } else {
+            None
+        };
         Ok(Self {
+            vision,
+            cameras: c.image_features().map_err(candle_core::Error::wrap)?.len(),
             vae,
             encoder: Encoder::new(c, c.n_encoder_layers, vb.pp("encoder"))?,
             decoder,
@@ -391,21 +478,20 @@ impl ActNet {
         Ok((params.narrow(1, 0, l)?, params.narrow(1, l, l)?))
     }
 
-    /// Normalised observations in, normalised actions out. `state (B, s)`, `env (B, e)` as
-    /// the config has them; `vae` (training) runs the CVAE encoder and samples the latent,
-    /// else the latent is zero; `d` is training dropout.
+    /// Normalised observations in, normalised actions out; `vae` (training) runs the CVAE
+    /// encoder and samples the latent, else the latent is zero; `d` is training dropout.
     pub fn forward(
         &self,
-        state: Option<&Tensor>,
-        env: Option<&Tensor>,
+        inputs: &ActInputs<'_>,
         vae: Option<&VaeInput<'_>>,
         d: Option<&Dropout<'_>>,
     ) -> Result<ActOutput> {
-        let b = state.or(env).map(|t| t.dim(0)).transpose()?.unwrap_or(1);
+        let first = inputs.state.or(inputs.env).or(inputs.images.first());
+        let b = first.map(|t| t.dim(0)).transpose()?.unwrap_or(1);
         let dev = self.pos_1d.device();
         let (latent, z) = match (&self.vae, vae) {
             (Some(enc), Some(input)) => {
-                let (mu, log_sigma_x2) = self.encode_latent(enc, state, input, d)?;
+                let (mu, log_sigma_x2) = self.encode_latent(enc, inputs.state, input, d)?;
                 let z = (&mu + (&log_sigma_x2 / 2.0)?.exp()?.mul(input.eps)?)?;
                 (Some((mu, log_sigma_x2)), z)
             }
@@ -414,18 +500,7 @@ impl ActNet {
                 Tensor::zeros((b, self.config.latent_dim), DType::F32, dev)?,
             ),
         };
-        let p = products(d);
-        let mut tokens = vec![linear2(&self.latent_proj, &z, p)?];
-        for (proj, input) in [(&self.state_proj, state), (&self.env_proj, env)] {
-            if let Some(proj) = proj {
-                let x = input.ok_or_else(|| {
-                    candle_core::Error::Msg("a configured input is missing".into())
-                })?;
-                tokens.push(linear2(proj, x, p)?);
-            }
-        }
-        let x = Tensor::stack(&tokens, 1)?;
-        let pos = self.pos_1d.unsqueeze(0)?;
+        let (x, pos) = self.encoder_tokens(&z, inputs, products(d))?;
         let memory = self.encoder.forward(x, Some(&pos), None, d)?;
         let query_pos = self.query_pos.unsqueeze(0)?;
         let m = Memory {
@@ -440,9 +515,48 @@ impl ActNet {
         }
         let y = self.decoder_norm.forward(&y)?;
         Ok(ActOutput {
-            actions: linear3(&self.head, &y, p)?,
+            actions: linear3(&self.head, &y, products(d))?,
             latent,
         })
+    }
+
+    /// The encoder's tokens `(B, L, dm)` and their position embedding `(1, L, dm)`:
+    /// latent, states, then each camera's feature-map cells.
+    fn encoder_tokens(
+        &self,
+        z: &Tensor,
+        inputs: &ActInputs<'_>,
+        p: Products,
+    ) -> Result<(Tensor, Tensor)> {
+        let mut tokens = vec![linear2(&self.latent_proj, z, p)?.unsqueeze(1)?];
+        for (proj, input) in [
+            (&self.state_proj, inputs.state),
+            (&self.env_proj, inputs.env),
+        ] {
+            if let Some(proj) = proj {
+                let x = input.ok_or_else(|| {
+                    candle_core::Error::Msg("a configured input is missing".into())
+                })?;
+                tokens.push(linear2(proj, x, p)?.unsqueeze(1)?);
+            }
+        }
+        let mut pos = vec![self.pos_1d.unsqueeze(0)?];
+        match &self.vision {
+            Some(v) if inputs.images.len() == self.cameras => {
+                for img in inputs.images {
+                    let (t, q) = v.tokens(img, p)?;
+                    tokens.push(t);
+                    pos.push(q);
+                }
+            }
+            None if inputs.images.is_empty() => {}
+            _ => candle_core::bail!(
+                "{} camera batches given, the config has {}",
+                inputs.images.len(),
+                self.cameras
+            ),
+        }
+        Ok((Tensor::cat(&tokens, 1)?, Tensor::cat(&pos, 1)?))
     }
 
     /// LeRobot's loss: the L1 error over non-padded actions (averaged over every element, as

@@ -10,7 +10,7 @@ use candle_nn::{VarBuilder, VarMap};
 use rand::RngCore;
 
 use super::config::ActConfig;
-use super::model::ActNet;
+use super::model::{ActInputs, ActNet};
 use crate::attack::PgdConfig;
 use crate::checkpoint::{
     CONFIG, WEIGHTS, ck, read_processor_stats, read_tensors, save_stats, write_config,
@@ -25,8 +25,79 @@ pub struct ActPolicy {
     net: ActNet,
     state_norm: Option<Normalizer>,
     env_norm: Option<Normalizer>,
+    camera: Option<Camera>,
     action_norm: Normalizer,
     stats: StatsMap,
+}
+
+/// The camera a policy reads: its frame size and per-channel normalisation.
+struct Camera {
+    h: usize,
+    w: usize,
+    /// `(1, 3, 1, 1)` mean and std (std with LeRobot's epsilon added), for MEAN_STD.
+    norm: Option<(Tensor, Tensor)>,
+}
+
+impl Camera {
+    /// The config's one camera (an [`Observation`] carries one frame; several are refused).
+    fn new(c: &ActConfig, stats: &StatsMap) -> Result<Option<Self>, PolicyError> {
+        let cams = c.image_features()?;
+        let (name, [_, h, w]) = match cams.as_slice() {
+            [] => return Ok(None),
+            [one] => one.clone(),
+            more => {
+                return Err(crate::error::config_err(
+                    "input_features",
+                    more.iter().map(|(n, _)| n).collect::<Vec<_>>(),
+                    "at most one camera (an observation carries one frame)",
+                ));
+            }
+        };
+        let norm = match c.norm_mode("VISUAL") {
+            crate::normalize::NormMode::MeanStd => {
+                let s = stats.get(&name).cloned().unwrap_or_default();
+                if s.mean.len() != 3 || s.std.len() != 3 {
+                    return Err(crate::error::config_err(
+                        "stats",
+                        format!("{name}: mean {:?}, std {:?}", s.mean, s.std),
+                        "3 channel means and stds",
+                    ));
+                }
+                let std: Vec<f32> = s.std.iter().map(|v| v + crate::normalize::EPS).collect();
+                Some((
+                    Tensor::from_vec(s.mean, (1, 3, 1, 1), &Device::Cpu)?,
+                    Tensor::from_vec(std, (1, 3, 1, 1), &Device::Cpu)?,
+                ))
+            }
+            crate::normalize::NormMode::Identity => None,
+            other => {
+                return Err(crate::error::config_err(
+                    "normalization_mapping.VISUAL",
+                    format!("{other:?}"),
+                    "MEAN_STD or IDENTITY",
+                ));
+            }
+        };
+        Ok(Some(Self { h, w, norm }))
+    }
+
+    /// Frames `(B, 3, H, W)` in [0, 1] normalised as the network reads them.
+    fn normalize(&self, img: &Tensor) -> candle_core::Result<Tensor> {
+        match &self.norm {
+            Some((m, s)) => img.broadcast_sub(m)?.broadcast_div(s),
+            None => Ok(img.clone()),
+        }
+    }
+}
+
+/// A batch of observations as tensors: normalised states, raw frames in [0, 1].
+pub struct ObsTensors {
+    /// Normalised robot state `(B, s)`.
+    pub state: Option<Tensor>,
+    /// Normalised environment state `(B, e)`.
+    pub env: Option<Tensor>,
+    /// Frames `(B, 3, H, W)` in [0, 1], before normalisation (PGD's space).
+    pub image: Option<Tensor>,
 }
 
 fn normalizer(
@@ -59,6 +130,7 @@ impl ActPolicy {
             .transpose()?;
         let action_norm = normalizer(&config, &stats, "action", "ACTION", config.action_dim()?)?;
         Ok(Self {
+            camera: Camera::new(&config, &stats)?,
             net: ActNet::new(config, vb)?,
             state_norm,
             env_norm,
@@ -82,11 +154,11 @@ impl ActPolicy {
         &self.stats
     }
 
-    /// Normalised `(state, env)` tensors `(B, ·)` of a batch of single observations.
-    pub fn obs_tensors(
-        &self,
-        obs: &[&Observation],
-    ) -> Result<(Option<Tensor>, Option<Tensor>), PolicyError> {
+    /// A batch of single observations as tensors (states normalised, frames in [0, 1]).
+    ///
+    /// # Errors
+    /// An absent or misshapen input, named.
+    pub fn obs_tensors(&self, obs: &[&Observation]) -> Result<ObsTensors, PolicyError> {
         let dev = Device::Cpu;
         let rows = |norm: &Normalizer,
                     get: &dyn Fn(&Observation) -> Option<Vec<f32>>,
@@ -118,7 +190,60 @@ impl ActPolicy {
             .as_ref()
             .map(|n| rows(n, &|o| o.env_state.clone(), "observation.environment_state"))
             .transpose()?;
-        Ok((state, env))
+        let image = match &self.camera {
+            Some(cam) => {
+                let mut flat = Vec::with_capacity(obs.len() * 3 * cam.h * cam.w);
+                for o in obs {
+                    let px = o.image.as_deref().unwrap_or_default();
+                    crate::vision::push_chw(px, cam.h, cam.w, &mut flat).map_err(|reason| {
+                        PolicyError::Input {
+                            name: "observation.image",
+                            reason,
+                        }
+                    })?;
+                }
+                Some(Tensor::from_vec(flat, (obs.len(), 3, cam.h, cam.w), &dev)?)
+            }
+            None => None,
+        };
+        Ok(ObsTensors { state, env, image })
+    }
+
+    /// The network's output for `obs` with its frame replaced by `image` (`(B, 3, H, W)` in
+    /// [0, 1]; gradients flow through its normalisation), the latent zero.
+    fn forward_with_image(
+        &self,
+        obs: &ObsTensors,
+        env: Option<&Tensor>,
+        image: Option<&Tensor>,
+    ) -> Result<Tensor, PolicyError> {
+        let images = match (&self.camera, image) {
+            (Some(cam), Some(img)) => vec![cam.normalize(img)?],
+            _ => Vec::new(),
+        };
+        let inputs = ActInputs {
+            state: obs.state.as_ref(),
+            env,
+            images: &images,
+        };
+        Ok(self.net.forward(&inputs, None, None)?.actions)
+    }
+
+    /// The normalised network inputs of `obs` (for training).
+    pub fn inputs_of<'a>(
+        &self,
+        obs: &'a ObsTensors,
+        images: &'a mut Vec<Tensor>,
+    ) -> Result<ActInputs<'a>, PolicyError> {
+        images.clear();
+        if let (Some(cam), Some(img)) = (&self.camera, &obs.image) {
+            images.push(cam.normalize(img)?);
+        }
+        Ok(ActInputs {
+            state: obs.state.as_ref(),
+            env: obs.env.as_ref(),
+            images,
+        })
     }
 
     /// Normalises one action row in place.
@@ -134,10 +259,10 @@ impl ActPolicy {
     /// The chunks of several observations in one pass; each is bit for bit what
     /// [`ActPolicy::predict`] gives alone (the products run per sample at inference).
     pub fn predict_many(&self, obs: &[&Observation]) -> Result<Vec<Vec<f32>>, PolicyError> {
-        let (state, env) = self.obs_tensors(obs)?;
-        let out = self.net.forward(state.as_ref(), env.as_ref(), None, None)?;
+        let t = self.obs_tensors(obs)?;
+        let actions = self.forward_with_image(&t, t.env.as_ref(), t.image.as_ref())?;
         let n = self.config().chunk_size * self.action_norm.dim();
-        let flat = out.actions.flatten_all()?.to_vec1::<f32>()?;
+        let flat = actions.flatten_all()?.to_vec1::<f32>()?;
         Ok(flat
             .chunks(n)
             .map(|c| {
@@ -201,7 +326,7 @@ impl ChunkPolicy for ActPolicy {
     fn needs(&self) -> ObsNeeds {
         ObsNeeds {
             env_state: self.env_norm.is_some(),
-            image: None,
+            image: self.camera.as_ref().map(|c| (c.w, c.h)),
         }
     }
     fn attackable(&self) -> Option<&dyn AttackablePolicy> {
@@ -235,13 +360,15 @@ impl ChunkPolicy for ActPolicy {
     }
 }
 
-/// PGD on ACT (the paper's observation attack, transferred): the *normalised* environment
-/// state (PushT: the block keypoints) is perturbed inside the L-infinity ball of radius
-/// `eps`, climbing ACT's own training loss, the L1 distance of the predicted chunk from the
-/// chunk predicted at the clean observation, by `step * sign(gradient)` per iteration. That
-/// loss is flat at the clean observation (its minimum), so the attack always starts from a
-/// uniform point in the ball (drawn from `attack_rng`), whatever `random_start` says;
-/// `samples` is unused (ACT is deterministic). The agent's own position is left alone.
+/// PGD on ACT (the paper's observation attack, transferred), climbing ACT's own training
+/// loss, the L1 distance of the predicted chunk (latent zero) from the chunk predicted at the
+/// clean observation, by `step * sign(gradient)` per iteration inside the L-infinity ball of
+/// radius `eps`. What is perturbed: the camera frame in [0, 1] (clipped to [0, 1]), as the
+/// protocol attacks pixels, when the policy has a camera; otherwise the *normalised*
+/// environment state (PushT: the block keypoints). The agent's own position is left alone.
+/// That loss is flat at the clean observation (its minimum), so the attack always starts from
+/// a uniform point in the ball (drawn from `attack_rng`), whatever `random_start` says;
+/// `samples` is unused (ACT is deterministic).
 impl AttackablePolicy for ActPolicy {
     fn predict_chunk_attacked(
         &self,
@@ -250,48 +377,110 @@ impl AttackablePolicy for ActPolicy {
         attack_rng: &mut dyn RngCore,
         _sample_rng: &mut dyn RngCore,
     ) -> Result<Vec<f32>, PolicyError> {
-        use rand::Rng;
         pgd.validate()?;
         let obs = history
             .last()
             .ok_or_else(|| crate::error::config_err("history", 0, "1 observation"))?;
-        let (state, env) = self.obs_tensors(&[obs])?;
-        let env0 = env.ok_or_else(|| PolicyError::Input {
-            name: "policy",
-            reason: "PGD perturbs the environment state, and this ACT reads none".into(),
+        let t = self.obs_tensors(&[obs])?;
+        let pixels = t.image.is_some();
+        let x0 = match (&t.image, &t.env) {
+            (Some(img), _) => img.clone(),
+            (None, Some(env)) => env.clone(),
+            (None, None) => {
+                return Err(PolicyError::Input {
+                    name: "policy",
+                    reason: "PGD perturbs a camera frame or the environment state, and this ACT reads neither".into(),
+                });
+            }
+        };
+        let run = |x: &Tensor| -> Result<Tensor, PolicyError> {
+            if pixels {
+                self.forward_with_image(&t, t.env.as_ref(), Some(x))
+            } else {
+                self.forward_with_image(&t, Some(x), None)
+            }
+        };
+        let clean = run(&x0)?.detach();
+        // Pixels stay in [0, 1]: the perturbation is cut where it would leave.
+        let project = |delta: Tensor| -> candle_core::Result<Tensor> {
+            if pixels {
+                (&x0 + delta)?.clamp(0f32, 1f32)? - &x0
+            } else {
+                Ok(delta)
+            }
+        };
+        let delta = pgd_ascent(&x0, pgd, attack_rng, &project, &|x| {
+            Ok((run(x)? - &clean)?.abs()?.mean_all()?)
         })?;
-        let clean = self
-            .net
-            .forward(state.as_ref(), Some(&env0), None, None)?
-            .actions
-            .detach();
-        let n = env0.elem_count();
-        let eps = pgd.eps as f32;
-        let start: Vec<f32> = (0..n)
-            .map(|_| attack_rng.random_range(-eps..=eps))
-            .collect();
-        let mut delta = Tensor::from_vec(start, env0.shape(), env0.device())?;
-        for _ in 0..pgd.iterations {
-            let x = candle_core::Var::from_tensor(&(&env0 + &delta)?)?;
-            let out = self
-                .net
-                .forward(state.as_ref(), Some(x.as_tensor()), None, None)?;
-            let loss = (&out.actions - &clean)?.abs()?.mean_all()?;
-            let grads = loss.backward()?;
-            let Some(g) = grads.get(x.as_tensor()) else {
-                break;
-            };
-            delta = (&delta + (g.sign()? * pgd.step)?)?
-                .clamp(-eps, eps)?
-                .detach();
-        }
-        let out = self
-            .net
-            .forward(state.as_ref(), Some(&(&env0 + &delta)?), None, None)?;
-        let mut chunk = out.actions.squeeze(0)?.flatten_all()?.to_vec1::<f32>()?;
+        let mut chunk = run(&(&x0 + delta)?)?
+            .squeeze(0)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
         for row in chunk.chunks_mut(self.action_norm.dim()) {
             self.action_norm.unnormalize(row);
         }
         Ok(chunk)
+    }
+}
+
+/// Sign-gradient ascent of `loss` from a uniform random start in the L-infinity ball of
+/// radius `pgd.eps` around `x0`, `pgd.iterations` steps of `pgd.step`; each perturbation is
+/// clipped to the ball, then by `project` (to keep `x0 + delta` valid). Returns the final
+/// perturbation.
+fn pgd_ascent(
+    x0: &Tensor,
+    pgd: &PgdConfig,
+    attack_rng: &mut dyn RngCore,
+    project: &dyn Fn(Tensor) -> candle_core::Result<Tensor>,
+    loss: &dyn Fn(&Tensor) -> Result<Tensor, PolicyError>,
+) -> Result<Tensor, PolicyError> {
+    use rand::Rng;
+    let eps = pgd.eps as f32;
+    let start: Vec<f32> = (0..x0.elem_count())
+        .map(|_| attack_rng.random_range(-eps..=eps))
+        .collect();
+    let mut delta = project(Tensor::from_vec(start, x0.shape(), x0.device())?)?;
+    for _ in 0..pgd.iterations {
+        let x = candle_core::Var::from_tensor(&(x0 + &delta)?)?;
+        let grads = loss(x.as_tensor())?.backward()?;
+        let Some(g) = grads.get(x.as_tensor()) else {
+            break;
+        };
+        delta = project((&delta + (g.sign()? * pgd.step)?)?.clamp(-eps, eps)?)?.detach();
+    }
+    Ok(delta)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    /// Ascent on `sum(x)` drives every coordinate to the top of the ball, cut at 1 where the
+    /// pixel box ends first; no perturbation leaves the ball.
+    #[test]
+    fn pixel_ascent_stays_in_the_ball_and_the_unit_box() {
+        let x0 = Tensor::from_vec(vec![0.0f32, 0.5, 0.97, 1.0], 4, &Device::Cpu).expect("x0");
+        let pgd = PgdConfig {
+            eps: 0.1,
+            step: 0.03,
+            iterations: 12,
+            random_start: true,
+            samples: 1,
+        };
+        let project = |d: Tensor| (&x0 + d)?.clamp(0f32, 1f32)? - &x0;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let delta =
+            pgd_ascent(&x0, &pgd, &mut rng, &project, &|x| Ok(x.sum_all()?)).expect("ascent");
+        let d = delta.to_vec1::<f32>().expect("values");
+        let want = [0.1f32, 0.1, 0.03, 0.0];
+        for (got, want) in d.iter().zip(want) {
+            assert!((got - want).abs() < 1e-6, "{d:?} against {want:?}");
+        }
+        // Without the box (the keypoint path), the same ascent ends at +eps everywhere.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let free = pgd_ascent(&x0, &pgd, &mut rng, &Ok, &|x| Ok(x.sum_all()?)).expect("ascent");
+        let f = free.to_vec1::<f32>().expect("values");
+        assert!(f.iter().all(|v| (v - 0.1).abs() < 1e-6), "{f:?}");
     }
 }

@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 
 use super::config::ActConfig;
 use super::model::{Dropout, VaeInput};
-use super::policy::ActPolicy;
+use super::policy::{ActPolicy, ObsTensors};
 use crate::error::{PolicyError, config_err};
 use crate::train::{TrainData, clip_gradients};
 
@@ -76,10 +76,9 @@ struct TrainingState {
     train: ActTrainConfig,
 }
 
-/// One batch: normalised inputs, targets and padding.
+/// One batch: inputs, targets and padding.
 struct Batch {
-    state: Option<Tensor>,
-    env: Option<Tensor>,
+    obs: ObsTensors,
     actions: Tensor,
     is_pad: Tensor,
     eps: Tensor,
@@ -98,6 +97,7 @@ fn batch(
     let frames = (data.action.len() / a).max(1);
     let sd = data.state.len() / frames;
     let ed = data.env_state.as_ref().map(|e| e.len() / frames);
+    let px = data.images.as_ref().map(|i| i.len() / frames);
     let obs: Vec<crate::policy::Observation> = idx
         .iter()
         .map(|&f| crate::policy::Observation {
@@ -107,11 +107,15 @@ fn batch(
                 .as_ref()
                 .zip(ed)
                 .map(|(e, d)| e[f * d..(f + 1) * d].to_vec()),
-            image: None,
+            image: data
+                .images
+                .as_ref()
+                .zip(px)
+                .map(|(i, n)| i[f * n..(f + 1) * n].to_vec()),
         })
         .collect();
     let refs: Vec<&crate::policy::Observation> = obs.iter().collect();
-    let (state, env) = policy.obs_tensors(&refs)?;
+    let obs = policy.obs_tensors(&refs)?;
     let mut actions = Vec::with_capacity(idx.len() * s * a);
     let mut pad = Vec::with_capacity(idx.len() * s);
     for &f in idx {
@@ -131,8 +135,7 @@ fn batch(
         .collect();
     let dev = Device::Cpu;
     Ok(Batch {
-        state,
-        env,
+        obs,
         actions: Tensor::from_vec(actions, (b, s, a), &dev)?,
         is_pad: Tensor::from_vec(pad, (b, s), &dev)?,
         eps: Tensor::from_vec(eps, (b, c.latent_dim), &dev)?,
@@ -158,16 +161,24 @@ pub fn train(
     if let Some(init) = train.init.as_ref().filter(|_| step == 0) {
         load_weights(&varmap, init)?;
     }
-    let vars: Vec<Var> = varmap.all_vars();
-    let mut opt = AdamW::new(
-        vars.clone(),
-        ParamsAdamW {
-            lr: config.optimizer_lr,
-            weight_decay: config.optimizer_weight_decay,
-            ..ParamsAdamW::default()
-        },
-    )?;
-    let named: Vec<(String, Var)> = vars.iter().map(|v| (String::new(), v.clone())).collect();
+    let (vars, backbone) = trainable(&varmap)?;
+    let adamw = |vars: Vec<Var>, lr: f64| {
+        AdamW::new(
+            vars,
+            ParamsAdamW {
+                lr,
+                weight_decay: config.optimizer_weight_decay,
+                ..ParamsAdamW::default()
+            },
+        )
+    };
+    let named: Vec<(String, Var)> = vars
+        .iter()
+        .chain(&backbone)
+        .map(|v| (String::new(), v.clone()))
+        .collect();
+    let mut opt = adamw(vars, config.optimizer_lr)?;
+    let mut opt_backbone = adamw(backbone, config.optimizer_lr_backbone)?;
     let mut starts = vec![0usize];
     for l in &data.episode_lengths {
         starts.push(starts[starts.len() - 1] + l);
@@ -192,10 +203,9 @@ pub fn train(
             is_pad: &b.is_pad,
             eps: &b.eps,
         };
-        let o =
-            policy
-                .net()
-                .forward(b.state.as_ref(), b.env.as_ref(), Some(&vae), Some(&dropout))?;
+        let mut images = Vec::new();
+        let inputs = policy.inputs_of(&b.obs, &mut images)?;
+        let o = policy.net().forward(&inputs, Some(&vae), Some(&dropout))?;
         let (loss, l1, kld) = policy.net().loss(&o, &b.actions, &b.is_pad)?;
         if !l1.is_finite() || !kld.is_finite() {
             return Err(config_err(
@@ -207,6 +217,7 @@ pub fn train(
         let mut grads = loss.backward()?;
         clip_gradients(&mut grads, &named, 10.0)?;
         opt.step(&grads)?;
+        opt_backbone.step(&grads)?;
         step += 1;
         recent.push((l1, kld));
         if recent.len() > 100 {
@@ -227,6 +238,35 @@ pub fn train(
         final_kld: recent.iter().map(|r| r.1).sum::<f32>() / n,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// The variables an optimiser moves, split into (the rest, the backbone's): LeRobot's two
+/// parameter groups. The backbone's frozen BatchNorm tensors are buffers and in neither.
+fn trainable(varmap: &VarMap) -> Result<(Vec<Var>, Vec<Var>), PolicyError> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| config_err("variables", "poisoned", "a usable variable map"))?;
+    let (mut rest, mut backbone) = (Vec::new(), Vec::new());
+    for (name, var) in data.iter() {
+        match name.strip_prefix("backbone.") {
+            None => rest.push(var.clone()),
+            Some(n) if !is_frozen_norm(n) => backbone.push(var.clone()),
+            Some(_) => {}
+        }
+    }
+    Ok((rest, backbone))
+}
+
+/// Whether a backbone tensor (name below `backbone.`) belongs to a FrozenBatchNorm2d: the
+/// stem's `bn1`, the blocks' `bn1` and `bn2`, the shortcuts' `downsample.1`.
+fn is_frozen_norm(name: &str) -> bool {
+    let parts: Vec<&str> = name.split('.').collect();
+    match parts.as_slice() {
+        [.., "downsample", "1", _] => true,
+        [.., norm, _] => norm.starts_with("bn"),
+        _ => false,
+    }
 }
 
 fn save(
@@ -341,6 +381,126 @@ mod tests {
         (policy, varmap, data)
     }
 
+    /// A 32 x 32 camera (layer4: 1 x 1) through a width-4 ResNet-18, with the robot state.
+    fn tiny_image() -> (ActConfig, TrainData) {
+        let (policy, _, mut data) = tiny();
+        let c = ActConfig {
+            vision_backbone_width: 4,
+            ..policy.config().clone()
+        }
+        .with_camera("observation.image", [3, 32, 32]);
+        c.validate().expect("valid");
+        let frames = data.episode_lengths.iter().sum::<usize>();
+        data.images = Some(
+            (0..frames * 32 * 32 * 3)
+                .map(|i| ((i * 7 + i / 97) % 256) as u8)
+                .collect(),
+        );
+        data.env_state = None;
+        let img = crate::normalize::Stats {
+            mean: vec![0.5; 3],
+            std: vec![0.25; 3],
+            ..Default::default()
+        };
+        data.stats.insert("observation.image".into(), img);
+        (c, data)
+    }
+
+    #[test]
+    fn backbone_norm_tensors_are_recognised_by_name() {
+        for frozen in [
+            "bn1.weight",
+            "layer1.0.bn2.running_var",
+            "layer3.0.downsample.1.bias",
+        ] {
+            assert!(is_frozen_norm(frozen), "{frozen}");
+        }
+        for trained in [
+            "conv1.weight",
+            "layer2.1.conv2.weight",
+            "layer3.0.downsample.0.weight",
+        ] {
+            assert!(!is_frozen_norm(trained), "{trained}");
+        }
+    }
+
+    /// Training an image ACT moves the backbone's convolutions and leaves its FrozenBatchNorm
+    /// tensors at their identity statistics; the checkpoint has LeRobot's backbone names and
+    /// reloads to the same predictions.
+    #[test]
+    fn an_image_act_trains_its_backbone_and_keeps_its_batchnorm_frozen() {
+        let (c, data) = tiny_image();
+        let dir = tempfile::tempdir().expect("tmp");
+        let tc = ActTrainConfig {
+            steps: 3,
+            batch_size: 4,
+            seed: 5,
+            checkpoint_every: 0,
+            init: None,
+        };
+        train(&data, c.clone(), &tc, dir.path(), &mut |_, _, _| {}).expect("train");
+        let saved = candle_core::safetensors::load(
+            dir.path().join(crate::checkpoint::WEIGHTS),
+            &Device::Cpu,
+        )
+        .expect("weights");
+        let fresh = VarMap::new();
+        let vb = crate::init::seeded_var_builder(&fresh, tc.seed, DType::F32, &Device::Cpu);
+        let _p = ActPolicy::new(c, data.stats.clone(), vb).expect("fresh");
+        let init = fresh.data().lock().expect("lock");
+        let values = |t: &Tensor| t.flatten_all().and_then(|t| t.to_vec1::<f32>()).expect("v");
+        let conv = "backbone.layer1.0.conv1.weight";
+        assert_ne!(
+            values(&saved[&format!("model.{conv}")]),
+            values(init[conv].as_tensor()),
+            "the backbone's convolution trained"
+        );
+        for (name, want) in [
+            ("bn1.weight", 1.0),
+            ("bn1.running_var", 1.0),
+            ("layer2.0.downsample.1.bias", 0.0),
+            ("layer4.1.bn2.running_mean", 0.0),
+        ] {
+            let v = values(&saved[&format!("model.backbone.{name}")]);
+            assert!(v.iter().all(|&x| x == want), "{name}: {v:?}");
+        }
+        let policy = ActPolicy::load(dir.path()).expect("load");
+        let obs = crate::policy::Observation {
+            state: vec![30.0, 370.0],
+            env_state: None,
+            image: Some(data.images.as_ref().expect("frames")[..32 * 32 * 3].to_vec()),
+        };
+        let a = policy.predict(&obs).expect("predict");
+        assert_eq!(a.len(), 4 * 2);
+        assert!(a.iter().all(|v| v.is_finite()));
+        // PGD perturbs the frame (this policy reads no environment state) and moves the chunk.
+        use crate::policy::AttackablePolicy as _;
+        let pgd = crate::attack::PgdConfig {
+            eps: 0.1,
+            step: 0.05,
+            iterations: 2,
+            ..Default::default()
+        };
+        let (mut r, mut s) = (ChaCha8Rng::seed_from_u64(3), ChaCha8Rng::seed_from_u64(4));
+        let hit = policy
+            .predict_chunk_attacked(std::slice::from_ref(&obs), &pgd, &mut r, &mut s)
+            .expect("attack");
+        assert_eq!(hit.len(), a.len());
+        assert_ne!(hit, a, "the attacked frame changed nothing");
+        let small = crate::policy::Observation {
+            image: Some(vec![0; 16 * 16 * 3]),
+            ..obs
+        };
+        let e = policy
+            .predict(&small)
+            .expect_err("a 16 x 16 frame")
+            .to_string();
+        assert!(
+            e.contains("observation.image") && e.contains("32x32x3"),
+            "{e}"
+        );
+    }
+
     /// A warm start sets every variable to the checkpoint's value; a checkpoint of another
     /// width is a typed error naming the first variable whose shape differs.
     #[test]
@@ -399,9 +559,9 @@ mod tests {
                 eps: &b.eps,
             };
             let net = policy.net();
-            let o = net
-                .forward(b.state.as_ref(), b.env.as_ref(), Some(&vae), Some(&d))
-                .expect("forward");
+            let mut images = Vec::new();
+            let inputs = policy.inputs_of(&b.obs, &mut images).expect("inputs");
+            let o = net.forward(&inputs, Some(&vae), Some(&d)).expect("forward");
             net.loss(&o, &b.actions, &b.is_pad).expect("loss").0
         };
         let grads = loss_of().backward().expect("backward");

@@ -272,7 +272,7 @@ pub(crate) fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T
     })
 }
 
-fn is_resnet18_width(w: &usize) -> bool {
+pub(crate) fn is_resnet18_width(w: &usize) -> bool {
     *w == RESNET18_WIDTH
 }
 

@@ -256,31 +256,14 @@ impl DiffusionPolicy {
                         }
                     }
                 }
-                if let Some([c, hh, ww]) = img_shape {
-                    match &o.image {
-                        Some(px) if px.len() == c * hh * ww => {
-                            // HWC u8 -> CHW f32 in [0, 1].
-                            let mut chw = vec![0f32; c * hh * ww];
-                            for y in 0..hh {
-                                for x in 0..ww {
-                                    for ch in 0..c {
-                                        chw[ch * hh * ww + y * ww + x] =
-                                            f32::from(px[(y * ww + x) * c + ch]) / 255.0;
-                                    }
-                                }
-                            }
-                            image.extend(chw);
+                if let Some([_, hh, ww]) = img_shape {
+                    let px = o.image.as_deref().unwrap_or_default();
+                    crate::vision::push_chw(px, hh, ww, &mut image).map_err(|reason| {
+                        PolicyError::Input {
+                            name: "observation.image",
+                            reason,
                         }
-                        other => {
-                            return Err(PolicyError::Input {
-                                name: "observation.image",
-                                reason: format!(
-                                    "{} bytes, expected {hh}x{ww}x{c} RGB",
-                                    other.as_ref().map_or(0, Vec::len)
-                                ),
-                            });
-                        }
-                    }
+                    })?;
                 }
             }
         }

@@ -339,8 +339,16 @@ fn finetuning_changes_only_the_encoder_and_the_probe_is_neutral_on_itself() {
     }
     assert!(encoder_changed, "no encoder weight moved");
     let probe = gradient_probe(&p, &p, &d, placed(&texture), PROBE).expect("probe");
-    assert!((probe.cosine - 1.0).abs() < 1e-6, "{probe:?}");
-    assert!((probe.grad_norm_ratio - 1.0).abs() < 1e-6, "{probe:?}");
+    for v in [
+        probe.cosine,
+        probe.grad_norm_ratio,
+        probe.patch_cosine,
+        probe.patch_grad_norm_ratio,
+        probe.clean_cosine,
+        probe.clean_grad_norm_ratio,
+    ] {
+        assert!((v - 1.0).abs() < 1e-6, "{probe:?}");
+    }
     assert!(
         (probe.latent_displacement_ratio - 1.0).abs() < 1e-6,
         "{probe:?}"
@@ -351,6 +359,13 @@ fn finetuning_changes_only_the_encoder_and_the_probe_is_neutral_on_itself() {
         probe.cosine < 0.99,
         "different networks, different gradients: {probe:?}"
     );
+    // The gradients are taken at the patched frames: another texture at the same place gives
+    // other gradients (at the clean frames they would not depend on it).
+    let dark = vec![0.1f32; 3 * 12 * 12];
+    let probe2 = gradient_probe(&p, &other, &d, placed(&dark), PROBE).expect("probe");
+    assert_ne!(probe.cosine, probe2.cosine, "{probe:?} {probe2:?}");
+    assert_ne!(probe.patch_cosine, probe2.patch_cosine);
+    assert_eq!(probe.clean_cosine, probe2.clean_cosine);
 }
 
 /// Clean image features of 8 fixed windows.

@@ -380,8 +380,15 @@ pub fn probe(cli: &Cli, a: &crate::args::ProbeArgs) -> Result<()> {
         Format::Json => writeln!(so, "{}", serde_json::json!(r))?,
         Format::Text => writeln!(
             so,
-            "gradient probe over {} batches: cosine {:.3}, gradient norm ratio (tuned/original) {:.3}, latent displacement ratio {:.3}",
-            r.batches, r.cosine, r.grad_norm_ratio, r.latent_displacement_ratio
+            "gradient probe over {} batches at the patched frames: cosine {:.3}, gradient norm ratio (tuned/original) {:.3}; on the patch's pixels {:.3}, {:.3}; at the clean frames {:.3}, {:.3}; latent displacement ratio {:.3}",
+            r.batches,
+            r.cosine,
+            r.grad_norm_ratio,
+            r.patch_cosine,
+            r.patch_grad_norm_ratio,
+            r.clean_cosine,
+            r.clean_grad_norm_ratio,
+            r.latent_displacement_ratio
         )?,
     }
     Ok(())

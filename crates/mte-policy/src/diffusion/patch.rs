@@ -10,9 +10,10 @@
 //!   clean one (the clean embedding is detached); optionally the patch is regenerated against
 //!   the current encoder every step (one ascent step).
 //! - [`gradient_probe`]: how the fine-tuned encoder changes the attack surface: cosine between
-//!   the loss's input gradients through the original and the fine-tuned policy, the ratio of
-//!   their norms (tuned / original), and the ratio of the latent displacements the patch
-//!   induces (tuned / original).
+//!   the loss's input gradients through the original and the fine-tuned policy at the same
+//!   patched frames (over the whole frame and over the patch's own pixels; at the clean
+//!   frames too, for comparison), the ratio of their norms (tuned / original), and the ratio
+//!   of the latent displacements the patch induces (tuned / original).
 //!
 //! Images are full frames `(N, 3, H, W)` in [0, 1], cropped by the policy as at evaluation.
 //! All randomness comes from the seeds in the configs.
@@ -718,12 +719,38 @@ fn first_last(v: &[f64]) -> (f64, f64) {
 pub struct ProbeReport {
     /// Batches probed.
     pub batches: usize,
-    /// Cosine between d loss / d pixels through the original and the tuned policy.
+    /// Cosine between d loss / d pixels through the original and the tuned policy, at the
+    /// patched frames (the paper's probe: same observations, same patch).
     pub cosine: f64,
-    /// ‖∇ tuned‖ / ‖∇ original‖.
+    /// ‖∇ tuned‖ / ‖∇ original‖ at the patched frames.
     pub grad_norm_ratio: f64,
+    /// The cosine over the patch's own pixels only: the gradient the patch optimiser sees.
+    pub patch_cosine: f64,
+    /// ‖∇ tuned‖ / ‖∇ original‖ over the patch's own pixels.
+    pub patch_grad_norm_ratio: f64,
+    /// The full-frame cosine at the clean frames (the patch absent), for comparison.
+    pub clean_cosine: f64,
+    /// ‖∇ tuned‖ / ‖∇ original‖ at the clean frames.
+    pub clean_grad_norm_ratio: f64,
     /// ‖f_tuned(x ⊕ patch) − f_tuned(x)‖ / ‖f_orig(x ⊕ patch) − f_orig(x)‖.
     pub latent_displacement_ratio: f64,
+}
+
+/// Running sums of a probe's cosine and norm ratio over batches.
+#[derive(Default)]
+struct Agreement {
+    cosine: f64,
+    ratio: f64,
+}
+
+impl Agreement {
+    /// Adds the cosine and norm ratio of `tuned` against `original`.
+    fn add(&mut self, original: &[f64], tuned: &[f64]) {
+        let dot: f64 = original.iter().zip(tuned).map(|(a, b)| a * b).sum();
+        let (no, nt) = (norm(original), norm(tuned));
+        self.cosine += dot / (no * nt).max(f64::MIN_POSITIVE);
+        self.ratio += nt / no.max(f64::MIN_POSITIVE);
+    }
 }
 
 /// A trained patch at its place in the frame: `texture` is `3 x side x side` CHW in
@@ -776,26 +803,39 @@ pub fn gradient_probe(
     let win = Windows::new(data, original.config(), false);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let patch = Tensor::from_vec(texture.to_vec(), (3, side, side), original.device())?;
-    let (mut cos, mut ratio, mut disp) = (0.0, 0.0, 0.0);
+    let (mut patched, mut on_patch, mut clean_only) = (
+        Agreement::default(),
+        Agreement::default(),
+        Agreement::default(),
+    );
+    let mut disp = 0.0;
     let flat = |t: &Tensor| -> Result<Vec<f64>, PolicyError> {
         Ok(t.to_dtype(DType::F64)?.flatten_all()?.to_vec1::<f64>()?)
     };
+    let (x, y) = origin;
     for _ in 0..batches {
         let b = batch(original, data, &win, batch_size, &mut rng)?;
         let clean = images(&b)?;
-        let grad = |p: &DiffusionPolicy| -> Result<Vec<f64>, PolicyError> {
-            let (_, g) = p.observation_gradient(&b.obs, &b.x0, &b.eps, &b.ts)?;
-            let g = g
-                .image
-                .ok_or_else(|| config_err("image", "none", "an image gradient"))?;
-            flat(&g)
+        let attacked = paste(clean, &patch, x, y)?;
+        let grad = |p: &DiffusionPolicy, imgs: &Tensor| -> Result<Tensor, PolicyError> {
+            let obs = ObsBatch {
+                image: Some(imgs.clone()),
+                ..b.obs.clone()
+            };
+            let (_, g) = p.observation_gradient(&obs, &b.x0, &b.eps, &b.ts)?;
+            g.image
+                .ok_or_else(|| config_err("image", "none", "an image gradient"))
         };
-        let (go, gt) = (grad(original)?, grad(tuned)?);
-        let dot: f64 = go.iter().zip(&gt).map(|(a, b)| a * b).sum();
-        let (no, nt) = (norm(&go), norm(&gt));
-        cos += dot / (no * nt).max(f64::MIN_POSITIVE);
-        ratio += nt / no.max(f64::MIN_POSITIVE);
-        let attacked = paste(clean, &patch, origin.0, origin.1)?;
+        let (go, gt) = (grad(original, &attacked)?, grad(tuned, &attacked)?);
+        patched.add(&flat(&go)?, &flat(&gt)?);
+        let cut = |g: &Tensor| -> Result<Vec<f64>, PolicyError> {
+            flat(&g.narrow(2, y, side)?.narrow(3, x, side)?)
+        };
+        on_patch.add(&cut(&go)?, &cut(&gt)?);
+        clean_only.add(
+            &flat(&grad(original, clean)?)?,
+            &flat(&grad(tuned, clean)?)?,
+        );
         let shift = |p: &DiffusionPolicy| -> Result<f64, PolicyError> {
             let d = (p.image_features(&attacked)? - p.image_features(clean)?)?;
             Ok(norm(&flat(&d)?))
@@ -805,8 +845,12 @@ pub fn gradient_probe(
     let n = batches as f64;
     Ok(ProbeReport {
         batches,
-        cosine: cos / n,
-        grad_norm_ratio: ratio / n,
+        cosine: patched.cosine / n,
+        grad_norm_ratio: patched.ratio / n,
+        patch_cosine: on_patch.cosine / n,
+        patch_grad_norm_ratio: on_patch.ratio / n,
+        clean_cosine: clean_only.cosine / n,
+        clean_grad_norm_ratio: clean_only.ratio / n,
         latent_displacement_ratio: disp / n,
     })
 }

@@ -12,6 +12,44 @@ use crate::error::{PolicyError, config_err};
 /// LeRobot's epsilon in both modes.
 pub const EPS: f32 = 1e-8;
 
+/// A camera's `MEAN_STD` normalisation: per channel `(x - mean) / (std + eps)` of
+/// `(B, 3, H, W)` frames in [0, 1] (LeRobot's VISUAL features), in the frames' dtype and on
+/// their device, so gradients flow through it to the pixels.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageNorm {
+    mean: Vec<f32>,
+    /// The channel stds with [`EPS`] added.
+    std: Vec<f32>,
+}
+
+impl ImageNorm {
+    /// From camera `name`'s statistics, which must hold 3 channel means and stds.
+    pub fn mean_std(name: &str, stats: Option<&Stats>) -> Result<Self, PolicyError> {
+        let s = stats.cloned().unwrap_or_default();
+        if s.mean.len() != 3 || s.std.len() != 3 {
+            return Err(config_err(
+                "stats",
+                format!("{name}: mean {:?}, std {:?}", s.mean, s.std),
+                "3 channel means and stds",
+            ));
+        }
+        Ok(Self {
+            mean: s.mean,
+            std: s.std.iter().map(|v| v + EPS).collect(),
+        })
+    }
+
+    /// The normalised frames.
+    pub fn apply(&self, img: &candle_core::Tensor) -> candle_core::Result<candle_core::Tensor> {
+        let channel = |v: &[f32]| {
+            candle_core::Tensor::from_vec(v.to_vec(), (1, 3, 1, 1), img.device())?
+                .to_dtype(img.dtype())
+        };
+        img.broadcast_sub(&channel(&self.mean)?)?
+            .broadcast_div(&channel(&self.std)?)
+    }
+}
+
 /// How a feature is normalised (LeRobot's `normalization_mapping` values).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "SCREAMING_SNAKE_CASE")]

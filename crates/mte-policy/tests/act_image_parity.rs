@@ -12,6 +12,9 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use mte_policy::act::model::ActInputs;
 use mte_policy::act::{ActConfig, ActNet};
+
+mod common;
+use common::max_abs_diff;
 use mte_policy::kernels::Products;
 use mte_policy::vision::{BackboneNames, BackboneNorm, ResNet18};
 
@@ -93,18 +96,6 @@ fn fixture() -> Fixture {
     }
 }
 
-fn max_gap(a: &Tensor, b: &Tensor) -> f32 {
-    assert_eq!(a.dims(), b.dims());
-    (a - b)
-        .expect("sub")
-        .abs()
-        .expect("abs")
-        .max_all()
-        .expect("max")
-        .to_scalar::<f32>()
-        .expect("scalar")
-}
-
 fn actions(f: &Fixture, images: Tensor) -> Tensor {
     let images = [images];
     let inputs = ActInputs {
@@ -144,7 +135,7 @@ fn the_frozen_batchnorm_backbone_gives_lerobots_feature_map() {
         .expect("max")
         .to_scalar::<f32>()
         .expect("scalar");
-    let gap = max_gap(&got, want);
+    let gap = max_abs_diff(&got, want);
     assert!(
         gap < TOL * scale,
         "feature map differs by {gap} (scale {scale})"
@@ -155,9 +146,9 @@ fn the_frozen_batchnorm_backbone_gives_lerobots_feature_map() {
 fn inference_with_a_camera_matches_lerobot() {
     let f = fixture();
     let got = actions(&f, f.io["images"].clone());
-    let gap = max_gap(&got, &f.io["actions"]);
+    let gap = max_abs_diff(&got, &f.io["actions"]);
     assert!(gap < TOL, "actions differ by {gap}");
-    let gap64 = max_gap(
+    let gap64 = max_abs_diff(
         &got,
         &f.io["actions_f64"].to_dtype(DType::F32).expect("f32"),
     );
@@ -172,7 +163,7 @@ fn inference_with_a_camera_matches_lerobot() {
         0,
     )
     .expect("cat");
-    let moved = max_gap(&actions(&f, swapped), &f.io["actions"]);
+    let moved = max_abs_diff(&actions(&f, swapped), &f.io["actions"]);
     assert!(moved > 1e-3, "the frame had no effect ({moved})");
 }
 

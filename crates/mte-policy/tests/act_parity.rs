@@ -11,6 +11,9 @@ use candle_nn::VarBuilder;
 use mte_policy::act::model::{ActInputs, VaeInput};
 use mte_policy::act::{ActConfig, ActNet};
 
+mod common;
+use common::max_abs_diff;
+
 fn fixture() -> (ActNet, HashMap<String, Tensor>) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/act_tiny");
     let config = ActConfig::from_file(&dir.join("config.json")).expect("config");
@@ -29,18 +32,6 @@ fn inputs(io: &HashMap<String, Tensor>) -> ActInputs<'_> {
     }
 }
 
-fn max_gap(a: &Tensor, b: &Tensor) -> f32 {
-    assert_eq!(a.dims(), b.dims());
-    (a - b)
-        .expect("sub")
-        .abs()
-        .expect("abs")
-        .max_all()
-        .expect("max")
-        .to_scalar::<f32>()
-        .expect("scalar")
-}
-
 // Tolerance: float32 throughout, the same operations in a different summation order (candle's
 // gemm against PyTorch's) through 2 encoder and 1 decoder layers of width 16, outputs of
 // order 1: the gaps measured are a few 1e-7; 1e-5 leaves room for other CPUs' kernels while a
@@ -51,7 +42,7 @@ const TOL: f32 = 1e-5;
 fn inference_matches_lerobot() {
     let (net, io) = fixture();
     let out = net.forward(&inputs(&io), None, None).expect("forward");
-    let gap = max_gap(&out.actions, &io["actions"]);
+    let gap = max_abs_diff(&out.actions, &io["actions"]);
     assert!(gap < TOL, "inference actions differ by {gap}");
     assert!(out.latent.is_none());
 }
@@ -73,7 +64,7 @@ fn training_pass_through_the_cvae_matches_lerobot() {
         ("log_sigma_x2", ls, &io["log_sigma_x2"]),
         ("actions", &out.actions, &io["train_actions"]),
     ] {
-        let gap = max_gap(got, want);
+        let gap = max_abs_diff(got, want);
         assert!(gap < TOL, "{name} differs by {gap}");
     }
     // The guard: without the padding mask the CVAE sees the padded actions and mu moves.
@@ -84,7 +75,7 @@ fn training_pass_through_the_cvae_matches_lerobot() {
     let out2 = net
         .forward(&inputs(&io), Some(&unmasked), None)
         .expect("forward");
-    let moved = max_gap(
+    let moved = max_abs_diff(
         out2.latent
             .as_ref()
             .expect("latent")

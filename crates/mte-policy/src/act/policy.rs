@@ -34,8 +34,8 @@ pub struct ActPolicy {
 struct Camera {
     h: usize,
     w: usize,
-    /// `(1, 3, 1, 1)` mean and std (std with LeRobot's epsilon added), for MEAN_STD.
-    norm: Option<(Tensor, Tensor)>,
+    /// MEAN_STD's per-channel statistics (IDENTITY: none).
+    norm: Option<crate::normalize::ImageNorm>,
 }
 
 impl Camera {
@@ -54,21 +54,10 @@ impl Camera {
             }
         };
         let norm = match c.norm_mode("VISUAL") {
-            crate::normalize::NormMode::MeanStd => {
-                let s = stats.get(&name).cloned().unwrap_or_default();
-                if s.mean.len() != 3 || s.std.len() != 3 {
-                    return Err(crate::error::config_err(
-                        "stats",
-                        format!("{name}: mean {:?}, std {:?}", s.mean, s.std),
-                        "3 channel means and stds",
-                    ));
-                }
-                let std: Vec<f32> = s.std.iter().map(|v| v + crate::normalize::EPS).collect();
-                Some((
-                    Tensor::from_vec(s.mean, (1, 3, 1, 1), &Device::Cpu)?,
-                    Tensor::from_vec(std, (1, 3, 1, 1), &Device::Cpu)?,
-                ))
-            }
+            crate::normalize::NormMode::MeanStd => Some(crate::normalize::ImageNorm::mean_std(
+                &name,
+                stats.get(&name),
+            )?),
             crate::normalize::NormMode::Identity => None,
             other => {
                 return Err(crate::error::config_err(
@@ -84,7 +73,7 @@ impl Camera {
     /// Frames `(B, 3, H, W)` in [0, 1] normalised as the network reads them.
     fn normalize(&self, img: &Tensor) -> candle_core::Result<Tensor> {
         match &self.norm {
-            Some((m, s)) => img.broadcast_sub(m)?.broadcast_div(s),
+            Some(n) => n.apply(img),
             None => Ok(img.clone()),
         }
     }

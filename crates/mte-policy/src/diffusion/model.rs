@@ -72,7 +72,7 @@ pub struct DiffusionPolicy {
     scheduler: Scheduler,
     state_norm: Normalizer,
     env_norm: Option<Normalizer>,
-    image_norm: Option<(Vec<f32>, Vec<f32>)>,
+    image_norm: Option<crate::normalize::ImageNorm>,
     action_norm: Normalizer,
     stats: StatsMap,
 }
@@ -147,20 +147,10 @@ impl DiffusionPolicy {
         };
         let image_norm = match config.image_shape() {
             Some(_) => match config.normalization_mapping.get("VISUAL") {
-                Some(NormMode::MeanStd) => {
-                    let s = stats.get("observation.image").cloned().unwrap_or_default();
-                    if s.mean.len() != 3 || s.std.len() != 3 {
-                        return Err(config_err(
-                            "observation.image",
-                            (&s.mean, &s.std),
-                            "3 channel means and stds",
-                        ));
-                    }
-                    Some((
-                        s.mean,
-                        s.std.iter().map(|v| v + crate::normalize::EPS).collect(),
-                    ))
-                }
+                Some(NormMode::MeanStd) => Some(crate::normalize::ImageNorm::mean_std(
+                    "observation.image",
+                    stats.get("observation.image"),
+                )?),
                 _ => None,
             },
             None => None,
@@ -371,13 +361,7 @@ impl DiffusionPolicy {
 
     fn normalize_image(&self, img: &Tensor) -> Result<Tensor, PolicyError> {
         match &self.image_norm {
-            Some((mean, std)) => {
-                let m = Tensor::from_vec(mean.clone(), (1, 3, 1, 1), &self.device)?
-                    .to_dtype(img.dtype())?;
-                let s = Tensor::from_vec(std.clone(), (1, 3, 1, 1), &self.device)?
-                    .to_dtype(img.dtype())?;
-                Ok(img.broadcast_sub(&m)?.broadcast_div(&s)?)
-            }
+            Some(n) => Ok(n.apply(img)?),
             None => Ok(img.clone()),
         }
     }

@@ -69,6 +69,35 @@ fn data() -> TrainData {
     }
 }
 
+/// The image's normalisation is MEAN_STD (from the statistics) or IDENTITY (absent from the
+/// mapping, as in LeRobot); MIN_MAX has no meaning for camera frames here and is refused by
+/// name, where it used to be read silently as IDENTITY.
+#[test]
+fn a_min_max_camera_normalisation_is_refused_by_name() {
+    let mut c = config();
+    c.normalization_mapping
+        .insert("VISUAL".into(), mte_policy::normalize::NormMode::MinMax);
+    let vm = VarMap::new();
+    let vb = mte_policy::init::seeded_var_builder(&vm, 0, DType::F32, &Device::Cpu);
+    let Err(e) = DiffusionPolicy::new(c.clone(), stats(), vb) else {
+        panic!("MIN_MAX on the camera was accepted");
+    };
+    match e {
+        mte_policy::PolicyError::Config { field, value, .. } => {
+            assert_eq!(field, "normalization_mapping.VISUAL");
+            assert_eq!(value, "MinMax");
+        }
+        other => panic!("not a config error: {other}"),
+    }
+    c.normalization_mapping.remove("VISUAL");
+    let vm = VarMap::new();
+    let vb = mte_policy::init::seeded_var_builder(&vm, 0, DType::F32, &Device::Cpu);
+    assert!(
+        DiffusionPolicy::new(c, stats(), vb).is_ok(),
+        "absent means IDENTITY"
+    );
+}
+
 #[test]
 fn paste_replaces_exactly_the_square_and_routes_gradients_to_the_patch() {
     let img = Tensor::full(0.25f32, (2, 3, 10, 12), &Device::Cpu).expect("img");

@@ -16,7 +16,7 @@
 //! value. State-dict names are LeRobot's (`model.encoder.layers.0.self_attn.in_proj_weight`,
 //! ...), so its checkpoints load as they are.
 
-use candle_core::{D, DType, Result, Tensor};
+use candle_core::{D, DType, Device, Result, Tensor};
 use candle_nn::{Init, Linear, Module, VarBuilder};
 
 use super::config::ActConfig;
@@ -266,6 +266,9 @@ pub fn sinusoidal_2d(h: usize, w: usize, dm: usize) -> Vec<f32> {
 struct Vision {
     backbone: ResNet18,
     proj: Conv2d,
+    /// The position embedding of the last feature-map size seen, `(h, w)` and `(1, h w,
+    /// dm)`: computed once per size, not on every forward (PGD calls it per iteration).
+    pos: std::sync::Mutex<Option<((usize, usize), Tensor)>>,
 }
 
 impl Vision {
@@ -285,7 +288,28 @@ impl Vision {
             true,
             vb.pp("encoder_img_feat_input_proj"),
         )?;
-        Ok(Self { backbone, proj })
+        Ok(Self {
+            backbone,
+            proj,
+            pos: std::sync::Mutex::new(None),
+        })
+    }
+
+    /// [`sinusoidal_2d`] for an `h x w` map as a `(1, h w, dm)` tensor on `dev`, from the
+    /// cache when the size is the last one seen.
+    fn position(&self, (h, w, dm): (usize, usize, usize), dev: &Device) -> Result<Tensor> {
+        // A poisoned lock only means another thread panicked mid-update of a cache whose
+        // every state is valid (empty or complete): take it.
+        let mut slot = self.pos.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(((ch, cw), t)) = slot.as_ref()
+            && (*ch, *cw) == (h, w)
+            && t.device().same_device(dev)
+        {
+            return Ok(t.clone());
+        }
+        let t = Tensor::from_vec(sinusoidal_2d(h, w, dm), (1, h * w, dm), dev)?;
+        *slot = Some(((h, w), t.clone()));
+        Ok(t)
     }
 
     /// The tokens `(B, h w, dm)` and their position embedding `(1, h w, dm)` of one camera's
@@ -294,7 +318,7 @@ impl Vision {
         let f = self.proj.forward(&self.backbone.forward(img, p)?, p)?;
         let (b, dm, h, w) = f.dims4()?;
         let tokens = f.reshape((b, dm, h * w))?.transpose(1, 2)?.contiguous()?;
-        let pos = Tensor::from_vec(sinusoidal_2d(h, w, dm), (1, h * w, dm), img.device())?;
+        let pos = self.position((h, w, dm), img.device())?;
         Ok((tokens, pos))
     }
 }
@@ -599,5 +623,25 @@ mod tests {
         // Position 2, column 2: sin(2 / 10000^(2/4)) = sin(0.02).
         assert!((t[2 * 4 + 2] - 0.02f32.sin()).abs() < 1e-7);
         assert!((t[2 * 4 + 1] - 2f32.cos()).abs() < 1e-7);
+    }
+
+    /// The cached 2-D position table is the formula's for whichever map size comes, in any
+    /// order (a size change replaces the cache, a repeat reads it).
+    #[test]
+    fn the_position_cache_follows_the_feature_map_size() {
+        let c = ActConfig {
+            vision_backbone_width: 4,
+            dim_model: 8,
+            ..ActConfig::cpu()
+        };
+        let vm = candle_nn::VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+        let v = Vision::new(&c, &vb).expect("vision");
+        for (h, w) in [(3, 3), (3, 3), (2, 5), (3, 3)] {
+            let got = v.position((h, w, 8), &Device::Cpu).expect("position");
+            assert_eq!(got.dims(), &[1, h * w, 8]);
+            let got = got.flatten_all().and_then(|t| t.to_vec1::<f32>());
+            assert_eq!(got.expect("values"), sinusoidal_2d(h, w, 8), "{h}x{w}");
+        }
     }
 }

@@ -62,7 +62,7 @@ impl Camera {
             other => {
                 return Err(crate::error::config_err(
                     "normalization_mapping.VISUAL",
-                    format!("{other:?}"),
+                    other,
                     "MEAN_STD or IDENTITY",
                 ));
             }

@@ -151,7 +151,15 @@ impl DiffusionPolicy {
                     "observation.image",
                     stats.get("observation.image"),
                 )?),
-                _ => None,
+                // LeRobot: a kind absent from the mapping is not normalised.
+                None | Some(NormMode::Identity) => None,
+                Some(other) => {
+                    return Err(crate::error::config_err(
+                        "normalization_mapping.VISUAL",
+                        other,
+                        "MEAN_STD or IDENTITY",
+                    ));
+                }
             },
             None => None,
         };

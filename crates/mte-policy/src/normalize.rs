@@ -39,6 +39,25 @@ impl ImageNorm {
         })
     }
 
+    /// The camera normalisation for `mode` (LeRobot's VISUAL mapping; absent means
+    /// IDENTITY): MEAN_STD from camera `name`'s statistics, IDENTITY none, and any other
+    /// mode a config error naming `normalization_mapping.VISUAL`.
+    pub fn for_mode(
+        mode: NormMode,
+        name: &str,
+        stats: Option<&Stats>,
+    ) -> Result<Option<Self>, PolicyError> {
+        match mode {
+            NormMode::MeanStd => Self::mean_std(name, stats).map(Some),
+            NormMode::Identity => Ok(None),
+            other => Err(config_err(
+                "normalization_mapping.VISUAL",
+                other,
+                "MEAN_STD or IDENTITY",
+            )),
+        }
+    }
+
     /// The normalised frames.
     pub fn apply(&self, img: &candle_core::Tensor) -> candle_core::Result<candle_core::Tensor> {
         let channel = |v: &[f32]| {

@@ -18,16 +18,12 @@ fn every_bundled_checkpoint_loads_with_its_configured_shapes() {
         let text = std::fs::read_to_string(dir.join("config.json")).expect("config");
         let c: serde_json::Value = serde_json::from_str(&text).expect("JSON");
         let p = load_policy(&dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display()));
-        let (horizon, action) = match c["type"].as_str() {
-            Some("act") => (
-                "chunk_size",
-                c["output_features"]["action"]["shape"][0].as_u64(),
-            ),
-            _ => (
-                "horizon",
-                c["output_features"]["action"]["shape"][0].as_u64(),
-            ),
+        let horizon = if c["type"] == "act" {
+            "chunk_size"
+        } else {
+            "horizon"
         };
+        let action = c["output_features"]["action"]["shape"][0].as_u64();
         let name = dir.display();
         assert_eq!(
             p.horizon() as u64,

@@ -53,20 +53,8 @@ impl Camera {
                 ));
             }
         };
-        let norm = match c.norm_mode("VISUAL") {
-            crate::normalize::NormMode::MeanStd => Some(crate::normalize::ImageNorm::mean_std(
-                &name,
-                stats.get(&name),
-            )?),
-            crate::normalize::NormMode::Identity => None,
-            other => {
-                return Err(crate::error::config_err(
-                    "normalization_mapping.VISUAL",
-                    other,
-                    "MEAN_STD or IDENTITY",
-                ));
-            }
-        };
+        let norm =
+            crate::normalize::ImageNorm::for_mode(c.norm_mode("VISUAL"), &name, stats.get(&name))?;
         Ok(Some(Self { h, w, norm }))
     }
 

@@ -146,21 +146,16 @@ impl DiffusionPolicy {
             None => None,
         };
         let image_norm = match config.image_shape() {
-            Some(_) => match config.normalization_mapping.get("VISUAL") {
-                Some(NormMode::MeanStd) => Some(crate::normalize::ImageNorm::mean_std(
-                    "observation.image",
-                    stats.get("observation.image"),
-                )?),
+            Some(_) => crate::normalize::ImageNorm::for_mode(
                 // LeRobot: a kind absent from the mapping is not normalised.
-                None | Some(NormMode::Identity) => None,
-                Some(other) => {
-                    return Err(crate::error::config_err(
-                        "normalization_mapping.VISUAL",
-                        other,
-                        "MEAN_STD or IDENTITY",
-                    ));
-                }
-            },
+                config
+                    .normalization_mapping
+                    .get("VISUAL")
+                    .copied()
+                    .unwrap_or(NormMode::Identity),
+                "observation.image",
+                stats.get("observation.image"),
+            )?,
             None => None,
         };
         let action_norm = norm_for(&config, &stats, "action", "ACTION", a_dim)?;

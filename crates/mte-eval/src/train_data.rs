@@ -46,24 +46,27 @@ pub struct Extra {
     pub keypoints: bool,
 }
 
-/// Sets the sizes of `config`'s vector features (`observation.state`,
-/// `observation.environment_state`, `action`) to the dataset's, so that one preset serves
-/// any task (PushT's 2-D state and action, robomimic's 9-D proprioception and 7-D actions).
-/// Image features and features the dataset lacks are left as they are (loading the arrays
-/// then names what is missing).
+/// Sets the sizes of `config`'s features to the dataset's, so that one preset serves any
+/// task: vector features (`observation.state`, `observation.environment_state`, `action`;
+/// PushT's 2-D state and action, robomimic's 9-D proprioception and 7-D actions) take the
+/// dataset's length, and a camera (`[3, h, w]`, channels first) takes the frame size of the
+/// dataset's `[h, w, 3]` frames (PushT's 96 x 96, robomimic's 84 x 84). The crop is left as
+/// it is: a crop larger than the frame is then refused by `validate()` by name (robomimic
+/// as Diffusion Policy configures it crops 76 x 76). Features the dataset lacks are left as
+/// they are (loading the arrays then names what is missing).
 pub fn fit_shapes(config: &mut DiffusionConfig, info: &mte_data::Info) {
     let features = config
         .input_features
         .iter_mut()
         .chain(config.output_features.iter_mut());
     for (name, f) in features {
-        let vector = f.shape.len() == 1;
-        if let Some(d) = info
-            .features
-            .get(name)
-            .filter(|d| vector && d.shape.len() == 1)
-        {
-            f.shape = d.shape.clone();
+        let Some(d) = info.features.get(name) else {
+            continue;
+        };
+        match (&f.shape[..], &d.shape[..]) {
+            ([_], [n]) => f.shape = vec![*n],
+            ([c, _, _], [h, w, dc]) if c == dc => f.shape = vec![*c, *h, *w],
+            _ => {}
         }
     }
 }
@@ -168,7 +171,7 @@ mod tests {
     use mte_policy::config::ObsKind;
 
     #[test]
-    fn vector_features_take_the_datasets_sizes() {
+    fn features_take_the_datasets_sizes() {
         let mut config = DiffusionConfig::cpu(ObsKind::Keypoints);
         let feature = |n: usize| Feature {
             dtype: DType::F32,
@@ -195,16 +198,40 @@ mod tests {
         assert_eq!(config.input_features[names::ENV_STATE].shape, vec![10]);
         assert_eq!(config.output_features[names::ACTION].shape, vec![7]);
         config.validate().expect("still valid");
-        // Images keep their shape.
+        // Features the dataset lacks keep their shape.
         let mut image = DiffusionConfig::cpu(ObsKind::Image);
         let before = image.input_features.clone();
         fit_shapes(
             &mut image,
             &mte_data::Info {
                 features: Default::default(),
-                ..info
+                ..info.clone()
             },
         );
         assert_eq!(image.input_features, before);
+        // A camera takes the dataset's frame size (channels first); the crop stays.
+        let mut frames = mte_data::Info {
+            features: Default::default(),
+            ..info.clone()
+        };
+        frames.features.insert(
+            names::IMAGE.to_string(),
+            Feature {
+                shape: vec![84, 84, 3],
+                ..feature(1)
+            },
+        );
+        fit_shapes(&mut image, &frames);
+        assert_eq!(image.input_features[names::IMAGE].shape, vec![3, 84, 84]);
+        assert_eq!(image.crop_shape, Some([84, 84]));
+        // Frames of another channel count are not a camera of this policy: left alone.
+        frames
+            .features
+            .get_mut(names::IMAGE)
+            .expect("inserted")
+            .shape = vec![84, 84, 4];
+        let mut other = DiffusionConfig::cpu(ObsKind::Image);
+        fit_shapes(&mut other, &frames);
+        assert_eq!(other.input_features, before);
     }
 }

@@ -64,6 +64,23 @@ fn with_transformer(
     Ok(config)
 }
 
+/// Sizes from the dataset at `dir` (PushT: 2-D state and action, 96 x 96 frames;
+/// robomimic: 9-D proprioception, 7-D actions, 84 x 84 frames), then the config checked
+/// again (a preset's crop larger than the frames is refused by name: give `--config`).
+fn fit_to_data(config: &mut DiffusionConfig, dir: &std::path::Path) -> Result<()> {
+    let info_path = dir.join("info.json");
+    let info: mte_data::Info = serde_json::from_str(
+        &std::fs::read_to_string(&info_path)
+            .with_context(|| format!("reading {}", info_path.display()))?,
+    )
+    .with_context(|| format!("parsing {}", info_path.display()))?;
+    mte_eval::train_data::fit_shapes(config, &info);
+    config
+        .validate()
+        .with_context(|| format!("the config fitted to {}", dir.display()))?;
+    Ok(())
+}
+
 /// `mte train diffusion`
 pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
     let obs = match a.obs {
@@ -74,15 +91,8 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
     if a.backbone == crate::args::BackboneArg::Transformer {
         config = with_transformer(config, a.preset, obs)?;
     }
-    // State and action sizes come from the data (PushT 2-D, robomimic 9-D and 7-D).
     let first = a.data.first().context("--data: at least one dataset")?;
-    let info_path = first.join("info.json");
-    let info: mte_data::Info = serde_json::from_str(
-        &std::fs::read_to_string(&info_path)
-            .with_context(|| format!("reading {}", info_path.display()))?,
-    )
-    .with_context(|| format!("parsing {}", info_path.display()))?;
-    mte_eval::train_data::fit_shapes(&mut config, &info);
+    fit_to_data(&mut config, first)?;
     let mut data = train_data::load_many(&a.data, &config, train_data::Extra::default())?;
     if let Some(dir) = &a.normalization_from {
         let stats = mte_policy::checkpoint::read_stats(dir)
@@ -196,7 +206,8 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
 
 /// `mte train encoder`
 pub fn encoder(cli: &Cli, a: &TrainEncoderArgs) -> Result<()> {
-    let config = preset_config(a.preset, ObsKind::Image, a.config.as_deref())?;
+    let mut config = preset_config(a.preset, ObsKind::Image, a.config.as_deref())?;
+    fit_to_data(&mut config, &a.data)?;
     let data = train_data::load(&a.data, &config, train_data::Extra { keypoints: true })?;
     let pc = EncoderPretrainConfig {
         steps: a.steps,

@@ -237,7 +237,7 @@ impl Default for BridgeOptions {
     fn default() -> Self {
         Self {
             python: None,
-            // A robosuite step with two cameras takes ~0.1 s, a reset a few seconds; 120 s
+            // A robosuite step with a camera takes ~0.1 s, a reset a few seconds; 120 s
             // only fires on a worker that is stuck.
             timeout_s: 120.0,
             startup_timeout_s: 600.0,

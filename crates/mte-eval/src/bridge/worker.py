@@ -275,7 +275,10 @@ class Robomimic:
             has_renderer=False,
             has_offscreen_renderer=bool(image),
             use_camera_obs=bool(image),
-            camera_names=["agentview", "robot0_eye_in_hand"],
+            # Only the camera a policy observes is rendered: mte's image policies see one
+            # camera, agentview (rendering is most of a step's time without a GPU, and the
+            # eye-in-hand camera would double it).
+            camera_names=["agentview"],
             camera_heights=84,
             camera_widths=84,
             control_freq=20,

@@ -68,6 +68,22 @@ pub struct Info {
     pub generator: serde_json::Value,
 }
 
+impl Info {
+    /// Read `dir/info.json` written by [`DatasetWriter`], its format tag checked (what a
+    /// caller needs to size a model before loading the arrays).
+    pub fn read(dir: &Path) -> Result<Self, DataError> {
+        let path = dir.join("info.json");
+        let info: Self = read_json(&path)?;
+        if info.format != FORMAT {
+            return Err(DataError::Format {
+                path,
+                reason: format!("format {:?}, expected {FORMAT:?}", info.format),
+            });
+        }
+        Ok(info)
+    }
+}
+
 /// One line of `episodes.jsonl`.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EpisodeMeta {
@@ -428,13 +444,7 @@ pub struct Dataset {
 impl Dataset {
     /// Load `dir` written by [`DatasetWriter`]; every array's row count is checked.
     pub fn load(dir: &Path) -> Result<Self, DataError> {
-        let info: Info = read_json(&dir.join("info.json"))?;
-        if info.format != FORMAT {
-            return Err(DataError::Format {
-                path: dir.join("info.json"),
-                reason: format!("format {:?}, expected {FORMAT:?}", info.format),
-            });
-        }
+        let info = Info::read(dir)?;
         let stats = read_json(&dir.join("stats.json"))?;
         let ep_path = dir.join("episodes.jsonl");
         let text = fs::read_to_string(&ep_path).map_err(|e| DataError::io(&ep_path, e))?;

@@ -68,12 +68,7 @@ fn with_transformer(
 /// robomimic: 9-D proprioception, 7-D actions, 84 x 84 frames), then the config checked
 /// again (a preset's crop larger than the frames is refused by name: give `--config`).
 fn fit_to_data(config: &mut DiffusionConfig, dir: &std::path::Path) -> Result<()> {
-    let info_path = dir.join("info.json");
-    let info: mte_data::Info = serde_json::from_str(
-        &std::fs::read_to_string(&info_path)
-            .with_context(|| format!("reading {}", info_path.display()))?,
-    )
-    .with_context(|| format!("parsing {}", info_path.display()))?;
+    let info = mte_data::Info::read(dir)?;
     mte_eval::train_data::fit_shapes(config, &info);
     config
         .validate()

@@ -15,11 +15,21 @@ pub const EPS: f32 = 1e-8;
 /// A camera's `MEAN_STD` normalisation: per channel `(x - mean) / (std + eps)` of
 /// `(B, 3, H, W)` frames in [0, 1] (LeRobot's VISUAL features), in the frames' dtype and on
 /// their device, so gradients flow through it to the pixels.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 pub struct ImageNorm {
     mean: Vec<f32>,
     /// The channel stds with [`EPS`] added.
     std: Vec<f32>,
+    /// `mean` and `std` as `(1, 3, 1, 1)` f32 tensors on the CPU, built once: on CPU f32
+    /// frames [`ImageNorm::apply`] uses them as they are (no tensor built per call).
+    mean_t: candle_core::Tensor,
+    std_t: candle_core::Tensor,
+}
+
+impl PartialEq for ImageNorm {
+    fn eq(&self, other: &Self) -> bool {
+        self.mean == other.mean && self.std == other.std
+    }
 }
 
 impl ImageNorm {
@@ -33,9 +43,16 @@ impl ImageNorm {
                 "3 channel means and stds",
             ));
         }
+        let std: Vec<f32> = s.std.iter().map(|v| v + EPS).collect();
+        let channel = |v: &[f32]| {
+            candle_core::Tensor::from_vec(v.to_vec(), (1, 3, 1, 1), &candle_core::Device::Cpu)
+                .map_err(|e| config_err("stats", format!("{name}: {e}"), "3 channel values"))
+        };
         Ok(Self {
+            mean_t: channel(&s.mean)?,
+            std_t: channel(&std)?,
             mean: s.mean,
-            std: s.std.iter().map(|v| v + EPS).collect(),
+            std,
         })
     }
 
@@ -60,12 +77,11 @@ impl ImageNorm {
 
     /// The normalised frames.
     pub fn apply(&self, img: &candle_core::Tensor) -> candle_core::Result<candle_core::Tensor> {
-        let channel = |v: &[f32]| {
-            candle_core::Tensor::from_vec(v.to_vec(), (1, 3, 1, 1), img.device())?
-                .to_dtype(img.dtype())
-        };
-        img.broadcast_sub(&channel(&self.mean)?)?
-            .broadcast_div(&channel(&self.std)?)
+        // Same device and dtype: the cached tensors themselves (to_device and to_dtype
+        // return a shallow clone then); elsewhere a 3-value copy per call.
+        let fit = |t: &candle_core::Tensor| t.to_device(img.device())?.to_dtype(img.dtype());
+        img.broadcast_sub(&fit(&self.mean_t)?)?
+            .broadcast_div(&fit(&self.std_t)?)
     }
 }
 
@@ -228,5 +244,46 @@ mod tests {
         assert!((x[0] - 2.0).abs() < 1e-6);
         let e = Normalizer::new("state", NormMode::MinMax, &s, 1).expect_err("no min");
         assert!(e.to_string().contains("state"), "{e}");
+    }
+
+    #[test]
+    fn image_norm_is_per_channel_in_the_frames_dtype() -> candle_core::Result<()> {
+        use candle_core::{DType, Device, Tensor};
+        let s = Stats {
+            mean: vec![0.5, 0.25, 0.0],
+            std: vec![0.5, 0.25, 2.0],
+            ..Default::default()
+        };
+        let n = ImageNorm::mean_std("observation.image", Some(&s)).expect("3 channels");
+        // Two frames of 2 x 1 pixels, channel c of pixel p reading 0.1 c + 0.05 p.
+        let v: Vec<f32> = (0..12)
+            .map(|i| 0.1 * ((i / 2) % 3) as f32 + 0.05 * (i % 2) as f32)
+            .collect();
+        let img = Tensor::from_vec(v.clone(), (2, 3, 2, 1), &Device::Cpu)?;
+        for dtype in [DType::F32, DType::F64] {
+            let out = n.apply(&img.to_dtype(dtype)?)?;
+            assert_eq!(out.dtype(), dtype);
+            let got = out.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+            for (i, (g, x)) in got.iter().zip(&v).enumerate() {
+                let c = (i / 2) % 3;
+                let want = (x - s.mean[c]) / (s.std[c] + EPS);
+                assert!(
+                    (g - want).abs() < 1e-6,
+                    "{dtype:?} value {i}: {g} vs {want}"
+                );
+            }
+        }
+        // Applied twice, the same values (the cached channel tensors are not consumed).
+        let a = n.apply(&img)?.flatten_all()?.to_vec1::<f32>()?;
+        let b = n.apply(&img)?.flatten_all()?.to_vec1::<f32>()?;
+        assert_eq!(a, b);
+        let two = Stats {
+            mean: vec![0.5, 0.5],
+            std: vec![1.0, 1.0],
+            ..Default::default()
+        };
+        let e = ImageNorm::mean_std("observation.image", Some(&two)).expect_err("2 channels");
+        assert!(e.to_string().contains("observation.image"), "{e}");
+        Ok(())
     }
 }

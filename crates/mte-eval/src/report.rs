@@ -2537,6 +2537,61 @@ mod tests {
         assert!((per_step - 1e6 * runner / (23.0 * 150.0)).abs() < 1e-6);
     }
 
+    /// Bursts at another phase are their own curve: the same q at phase 0 and phase 3 gives
+    /// two coverage and two success plots against q (each with one point per q) and two
+    /// recovered-fraction plots, named and titled by phase.
+    #[test]
+    fn bursts_at_another_phase_are_another_curve() {
+        let mut m = manifest();
+        let mut ph3 = blank(2);
+        if let Schedule::Burst { phase, .. } = &mut ph3.schedule {
+            *phase = 3;
+        }
+        m.cells[1] = cell("blank-q2-ph3", ph3);
+        let lines: Vec<Line> = lines()
+            .into_iter()
+            .map(|mut l| {
+                if let Line::Episode(e) = &mut l
+                    && e.cell == Q1
+                {
+                    e.cell = "blank-q2-ph3".into();
+                }
+                l
+            })
+            .filter(|l| !matches!(l, Line::Error(e) if e.cell == Q1))
+            .collect();
+        let r = build(&m, &lines, &ReportOptions::default()).unwrap();
+        let names: Vec<&str> = r.plots.iter().map(|p| p.name.as_str()).collect();
+        for name in [
+            "coverage-pusht_keypoints-blank-burst-h2",
+            "coverage-pusht_keypoints-blank-burst-ph3-h2",
+            "success-pusht_keypoints-blank-burst-ph3-h2",
+            "recovered-pusht_keypoints-blank-h2",
+            "recovered-pusht_keypoints-blank-ph3-h2",
+        ] {
+            assert!(names.contains(&name), "no plot {name} in {names:?}");
+        }
+        let ph3 = r
+            .plots
+            .iter()
+            .find(|p| p.name == "coverage-pusht_keypoints-blank-burst-ph3-h2")
+            .unwrap();
+        assert!(ph3.spec.title.contains("phase 3"), "{}", ph3.spec.title);
+        for p in r.plots.iter().filter(|p| !p.name.starts_with("figure")) {
+            for series in &p.spec.series {
+                let xs: Vec<f64> = series.points.iter().map(|q| q.x).collect();
+                let mut unique = xs.clone();
+                unique.dedup();
+                assert_eq!(xs, unique, "{}: {} repeats an x", p.name, series.label);
+            }
+        }
+        // Phase 3's q = 2 curve: the clean point and its own q = 2 point, the Q1 values.
+        let ewm = ph3.spec.series.iter().find(|s| s.label == EWM).unwrap();
+        assert_eq!(ewm.points.len(), 2);
+        let mean = Q1_EWM.iter().sum::<f64>() / Q1_EWM.len() as f64;
+        assert!((ewm.points[1].y - mean).abs() < 1e-12);
+    }
+
     #[test]
     fn recovered_plot_uses_the_attack_budget_when_two_cells_have_one() {
         let mut m = manifest();

@@ -2,6 +2,7 @@
 //! the recovered fraction against the attack budget) and their series. `plot` draws them.
 
 use super::*;
+use crate::corruption::Schedule;
 use crate::label::span_suffix;
 
 /// Specs of every plot: coverage and success against `q`, recovered fraction against the
@@ -101,9 +102,12 @@ fn coverage_plots(
     taken: &mut HashSet<String>,
 ) -> Result<Vec<PlotSpec>, ReportError> {
     let mut specs = Vec::new();
-    // (a) Coverage and success against q, per (policy, fault, schedule kind, h).
-    // Key: (policy, fault, schedule kind, h); value: member cells.
-    type QGroup = ((String, String, String, usize, Option<usize>), Vec<usize>);
+    // (a) Coverage and success against q, per (policy, fault, schedule kind, h, span,
+    // burst phase): bursts at another phase are another curve, not more points at the same q.
+    type QGroup = (
+        (String, String, String, usize, Option<usize>, usize),
+        Vec<usize>,
+    );
     let mut groups: Vec<QGroup> = Vec::new();
     for &ci in corrupted {
         let s = cells[ci].spec;
@@ -113,13 +117,14 @@ fn coverage_plots(
             kind_tag(&s.corruption.schedule),
             s.h,
             s.span,
+            burst_phase(&s.corruption.schedule),
         );
         match groups.iter_mut().find(|(k, _)| *k == key) {
             Some((_, v)) => v.push(ci),
             None => groups.push((key, vec![ci])),
         }
     }
-    for ((policy, fault, kind, h, span), members) in &groups {
+    for ((policy, fault, kind, h, span, phase), members) in &groups {
         let mut points: Vec<(usize, usize)> =
             members.iter().map(|&ci| (cells[ci].spec.q(), ci)).collect();
         if let Some(cj) = clean_of(cells, members[0]) {
@@ -162,10 +167,15 @@ fn coverage_plots(
         }
         let label = policy_label(policy);
         let stem = slug(&format!(
-            "{label}-{fault}-{kind}-h{h}{}",
+            "{label}-{fault}-{kind}{}-h{h}{}",
+            phase_suffix(*phase),
             span_suffix(*span)
         ));
-        let title = format!("{label}: {fault} ({kind}), h = {h}{}", span_title(*span));
+        let title = format!(
+            "{label}: {fault} ({kind}{}), h = {h}{}",
+            phase_title(*phase),
+            span_title(*span)
+        );
         let (cov_title, succ_title) = (
             format!("Mean max coverage, {title}"),
             format!("Success rate, {title}"),
@@ -207,19 +217,27 @@ fn recovered_plots(
 ) -> Result<Vec<PlotSpec>, ReportError> {
     let (cells, baseline) = (ctx.cells, ctx.baseline);
     let mut specs = Vec::new();
-    // (b) Recovered fraction against the attack budget (or q), per (policy, fault kind, h).
-    type KindGroup = ((String, String, usize, Option<usize>), Vec<usize>);
+    // (b) Recovered fraction against the attack budget (or q), per (policy, fault kind, h,
+    // span, burst phase).
+    type KindGroup = ((String, String, usize, Option<usize>, usize), Vec<usize>);
     let mut groups: Vec<KindGroup> = Vec::new();
     for &ci in corrupted {
         let s = cells[ci].spec;
-        let key = (s.policy.clone(), kind_tag(&s.corruption.fault), s.h, s.span);
+        let key = (
+            s.policy.clone(),
+            kind_tag(&s.corruption.fault),
+            s.h,
+            s.span,
+            burst_phase(&s.corruption.schedule),
+        );
         match groups.iter_mut().find(|(k, _)| *k == key) {
             Some((_, v)) => v.push(ci),
             None => groups.push((key, vec![ci])),
         }
     }
     let mut curves: Vec<Curve> = Vec::new();
-    for ((policy, kind, h, span), members) in &groups {
+    for ((policy, kind, h, span, phase), members) in &groups {
+        let (tag, kind) = (kind, format!("{kind}{}", phase_title(*phase)));
         let budgeted: Vec<usize> = members
             .iter()
             .copied()
@@ -280,7 +298,11 @@ fn recovered_plots(
                 taken,
                 format!(
                     "recovered-{}",
-                    slug(&format!("{label}-{kind}-h{h}{}", span_suffix(*span)))
+                    slug(&format!(
+                        "{label}-{tag}{}-h{h}{}",
+                        phase_suffix(*phase),
+                        span_suffix(*span)
+                    ))
                 ),
             ),
             title: format!(
@@ -521,6 +543,32 @@ fn schedule_label(s: &CellSpec) -> String {
     let full = s.corruption.to_string();
     let fault = format!("{}-", s.corruption.fault);
     full.strip_prefix(&fault).unwrap_or(&full).to_string()
+}
+
+/// A burst schedule's phase (0 for any other schedule).
+fn burst_phase(s: &Schedule) -> usize {
+    match s {
+        Schedule::Burst { phase, .. } => *phase,
+        _ => 0,
+    }
+}
+
+/// A plot name's phase part: none at phase 0, `-ph3` at phase 3 (as cell ids write it).
+fn phase_suffix(phase: usize) -> String {
+    if phase == 0 {
+        String::new()
+    } else {
+        format!("-ph{phase}")
+    }
+}
+
+/// A plot title's phase part.
+fn phase_title(phase: usize) -> String {
+    if phase == 0 {
+        String::new()
+    } else {
+        format!(", phase {phase}")
+    }
 }
 
 /// A plot title's span part.

@@ -17,6 +17,8 @@ use rand::{Rng, RngCore};
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
+use crate::label::phase_suffix;
+
 /// Side of the PushT workspace (px), for mapping image sizes onto keypoints.
 const WORKSPACE: f64 = 512.0;
 
@@ -573,10 +575,7 @@ impl fmt::Display for CorruptionSpec {
         match &self.schedule {
             Schedule::Never => f.write_str("clean"),
             Schedule::Burst { q, phase, period } => {
-                write!(f, "{}-burst-q{q}", self.fault)?;
-                if *phase != 0 {
-                    write!(f, "-ph{phase}")?;
-                }
+                write!(f, "{}-burst-q{q}{}", self.fault, phase_suffix(*phase))?;
                 if let Some(p) = period {
                     write!(f, "-per{p}")?;
                 }
@@ -1108,6 +1107,16 @@ mod tests {
         assert_eq!(back, s);
         assert_eq!(s.to_string(), "occluder-24-burst-q2");
         assert_eq!(s.q(), 2);
+        // A nonzero phase and a period are part of the name (cell ids, resumed runs).
+        let later = CorruptionSpec {
+            schedule: Schedule::Burst {
+                q: 2,
+                phase: 3,
+                period: Some(9),
+            },
+            ..s.clone()
+        };
+        assert_eq!(later.to_string(), "occluder-24-burst-q2-ph3-per9");
         assert_eq!(CorruptionSpec::CLEAN.to_string(), "clean");
         assert_eq!(CorruptionSpec::CLEAN.q(), 0);
     }

@@ -25,6 +25,16 @@ pub(crate) fn slug(s: &str) -> String {
         .collect()
 }
 
+/// A cell id's or plot name's burst-phase part: `-ph<N>` for a nonzero phase, nothing at
+/// phase 0 (the default).
+pub(crate) fn phase_suffix(phase: usize) -> String {
+    if phase == 0 {
+        String::new()
+    } else {
+        format!("-ph{phase}")
+    }
+}
+
 /// A cell id's or plot name's span part: `-span<N>` for a shortened span, nothing for the
 /// full one.
 pub(crate) fn span_suffix(span: Option<usize>) -> String {

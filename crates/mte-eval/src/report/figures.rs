@@ -3,7 +3,7 @@
 
 use super::*;
 use crate::corruption::Schedule;
-use crate::label::span_suffix;
+use crate::label::{phase_suffix, span_suffix};
 
 /// Specs of every plot: coverage and success against `q`, recovered fraction against the
 /// attack budget (or `q`); with a defence table, the undefended policy's recovered-fraction
@@ -550,15 +550,6 @@ fn burst_phase(s: &Schedule) -> usize {
     match s {
         Schedule::Burst { phase, .. } => *phase,
         _ => 0,
-    }
-}
-
-/// A plot name's phase part: none at phase 0, `-ph3` at phase 3 (as cell ids write it).
-fn phase_suffix(phase: usize) -> String {
-    if phase == 0 {
-        String::new()
-    } else {
-        format!("-ph{phase}")
     }
 }
 

@@ -963,7 +963,16 @@ fn main_rows(
             Some(cj) => clean_test(&cells[cj], cj, (baseline, robust), &mut clean_tests, notes)?,
             None => None,
         };
-        let comparison = if c.has(baseline) && c.has(robust) {
+        let ran = c.eps.iter().any(|v| !v.is_empty());
+        if !ran {
+            notes.push(format!(
+                "cell `{}` has not run: no episode recorded (a resumed sweep fills it)",
+                c.spec.id
+            ));
+        }
+        let comparison = if !ran {
+            None
+        } else if c.has(baseline) && c.has(robust) {
             let what = format!("cell `{}`, `{robust}` vs `{baseline}`", c.spec.id);
             Some(compare(
                 c.episodes(baseline),
@@ -1282,8 +1291,11 @@ fn recovered(eps: RecoveryEpisodes<'_, '_>, denominator: Option<Denominator>) ->
     if eps.clean.is_empty() {
         return undefined("no clean cell with the baseline arm for this policy and h");
     }
+    if eps.base.is_empty() && eps.other.is_empty() {
+        return undefined("the cell has not run: no episode recorded");
+    }
     if eps.base.is_empty() || eps.other.is_empty() {
-        return undefined("no paired episodes");
+        return undefined("no paired episodes: one arm has no episode recorded");
     }
     let Some(den) = denominator.filter(|d| d.n > 0) else {
         return undefined(
@@ -2377,6 +2389,28 @@ mod tests {
                 .contains("recovered on the 7 of 8 paired seeds that also ran the clean cell"),
             "the partial pairing is named"
         );
+    }
+
+    /// A cell of the manifest with no record yet (a sweep stopped before it) is named as not
+    /// run, with no comparison and no fraction, and not as a cell without paired episodes.
+    #[test]
+    fn a_cell_that_has_not_run_is_named_as_such() {
+        let mut l = lines();
+        l.retain(|line| !matches!(line, Line::Episode(r) if r.cell == Q2));
+        let r = build(&manifest(), &l, &ReportOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+        let q2 = row(&r, Q2);
+        assert!(q2.comparison.is_none());
+        assert_eq!(
+            q2.recovered.note.as_deref(),
+            Some("the cell has not run: no episode recorded")
+        );
+        assert!(
+            row(&r, Q1).comparison.is_some(),
+            "the other rows are untouched"
+        );
+        let md = r.markdown();
+        assert!(md.contains(&format!("cell `{Q2}` has not run")), "{md}");
+        assert!(!md.contains("no paired episodes"), "{md}");
     }
 
     #[test]

@@ -17,9 +17,10 @@ pub const EPS: f32 = 1e-8;
 /// their device, so gradients flow through it to the pixels.
 #[derive(Clone, Debug)]
 pub struct ImageNorm {
-    mean: Vec<f32>,
+    /// The channel means (R, G, B), in the frames' [0, 1] units.
+    mean: [f32; 3],
     /// The channel stds with [`EPS`] added.
-    std: Vec<f32>,
+    std: [f32; 3],
     /// `mean` and `std` as `(1, 3, 1, 1)` f32 tensors on the CPU, built once: on CPU f32
     /// frames [`ImageNorm::apply`] uses them as they are (no tensor built per call).
     mean_t: candle_core::Tensor,
@@ -33,25 +34,38 @@ impl PartialEq for ImageNorm {
 }
 
 impl ImageNorm {
-    /// From camera `name`'s statistics, which must hold 3 channel means and stds.
+    /// From camera `name`'s statistics, which must hold 3 finite channel means and 3 finite,
+    /// non-negative channel stds.
     pub fn mean_std(name: &str, stats: Option<&Stats>) -> Result<Self, PolicyError> {
-        let s = stats.cloned().unwrap_or_default();
-        if s.mean.len() != 3 || s.std.len() != 3 {
+        let empty = Stats::default();
+        let s = stats.unwrap_or(&empty);
+        let (Ok(mean), Ok(std)) = (
+            <[f32; 3]>::try_from(s.mean.as_slice()),
+            <[f32; 3]>::try_from(s.std.as_slice()),
+        ) else {
             return Err(config_err(
                 "stats",
                 format!("{name}: mean {:?}, std {:?}", s.mean, s.std),
                 "3 channel means and stds",
             ));
+        };
+        if mean.iter().any(|m| !m.is_finite()) || std.iter().any(|v| !(v.is_finite() && *v >= 0.0))
+        {
+            return Err(config_err(
+                "stats",
+                format!("{name}: mean {mean:?}, std {std:?}"),
+                "finite channel means and finite, non-negative stds",
+            ));
         }
-        let std: Vec<f32> = s.std.iter().map(|v| v + EPS).collect();
-        let channel = |v: &[f32]| {
+        let std = std.map(|v| v + EPS);
+        let channel = |v: [f32; 3]| {
             candle_core::Tensor::from_vec(v.to_vec(), (1, 3, 1, 1), &candle_core::Device::Cpu)
                 .map_err(|e| config_err("stats", format!("{name}: {e}"), "3 channel values"))
         };
         Ok(Self {
-            mean_t: channel(&s.mean)?,
-            std_t: channel(&std)?,
-            mean: s.mean,
+            mean_t: channel(mean)?,
+            std_t: channel(std)?,
+            mean,
             std,
         })
     }
@@ -284,6 +298,36 @@ mod tests {
         };
         let e = ImageNorm::mean_std("observation.image", Some(&two)).expect_err("2 channels");
         assert!(e.to_string().contains("observation.image"), "{e}");
+        // Non-finite or negative statistics are refused by name, never turned into NaN.
+        for (mean, std) in [
+            (vec![f32::NAN, 0.5, 0.5], vec![1.0; 3]),
+            (vec![0.5; 3], vec![1.0, f32::INFINITY, 1.0]),
+            (vec![0.5; 3], vec![1.0, 1.0, -0.5]),
+        ] {
+            let bad = Stats {
+                mean,
+                std,
+                ..Default::default()
+            };
+            let e = ImageNorm::mean_std("observation.images.top", Some(&bad))
+                .expect_err("non-finite or negative statistics");
+            let msg = e.to_string();
+            assert!(
+                msg.contains("observation.images.top") && msg.contains("finite"),
+                "{msg}"
+            );
+        }
+        // Equality compares the statistics.
+        let same = ImageNorm::mean_std("other", Some(&s)).expect("3 channels");
+        assert_eq!(n, same);
+        let shifted = Stats {
+            mean: vec![0.5, 0.25, 0.125],
+            ..s.clone()
+        };
+        assert_ne!(
+            n,
+            ImageNorm::mean_std("other", Some(&shifted)).expect("3 channels")
+        );
         Ok(())
     }
 }

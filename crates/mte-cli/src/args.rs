@@ -207,7 +207,8 @@ impl From<SamplingArg> for mte_eval::pusht::Sampling {
 pub enum TrainCommand {
     /// Train Diffusion Policy on an `mte data generate` dataset.
     Diffusion(TrainDiffusionArgs),
-    /// Train ACT (state observations: PushT keypoints) on an `mte data generate` dataset.
+    /// Train ACT (PushT keypoints, or the camera with `--obs image`) on an `mte data generate`
+    /// dataset.
     Act(TrainActArgs),
     /// Pre-train an image policy's encoder to regress the block keypoints (a warm start for
     /// `train diffusion --init`; the dataset needs `--obs keypoints,pixels`).

@@ -1,9 +1,9 @@
 //! ACT, the Action Chunking Transformer (Zhao et al., 2023), as LeRobot 0.4.4 defines it:
 //! the config schema and presets (`config`), the network with its CVAE objective (`model`),
 //! the policy behind the seam with LeRobot-compatible checkpoints (`policy`) and training
-//! (`train`). State observations only for now (PushT keypoints); the ResNet-18 image
-//! backbone with frozen BatchNorm is not ported yet, and a checkpoint with image features is
-//! refused with a typed error.
+//! (`train`). Observations: the state (PushT keypoints) and at most one camera through
+//! torchvision's ResNet-18 with FrozenBatchNorm (`crate::vision`); a checkpoint with two or
+//! more cameras is refused with a typed error.
 
 pub mod config;
 pub mod model;

@@ -94,15 +94,13 @@ impl FrozenBatchNorm {
         let (m, v) = (get("running_mean", 0.0)?, get("running_var", 1.0)?);
         let scale = (w * (v + f64::from(FROZEN_BN_EPS))?.sqrt()?.recip()?)?.detach();
         let shift = (b - (m * &scale)?)?.detach();
-        Ok(Self {
-            scale: scale.reshape((1, c, 1, 1))?,
-            shift: shift.reshape((1, c, 1, 1))?,
-        })
+        Ok(Self { scale, shift })
     }
 
-    /// `(B, C, H, W)` in, the same shape out.
+    /// `(B, C, H, W)` in, the same shape out: one fused pass whose backward pass computes
+    /// only the input's gradient (`kernels::frozen_affine`; candle's bits).
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        x.broadcast_mul(&self.scale)?.broadcast_add(&self.shift)
+        crate::kernels::frozen_affine(x, &self.scale, &self.shift)
     }
 }
 

@@ -33,6 +33,7 @@ macro_rules! float_storages {
 }
 
 mod activation;
+mod affine;
 mod batch;
 mod conv;
 mod conv1d;
@@ -43,6 +44,7 @@ mod pool;
 mod product;
 
 pub use activation::{mish, relu};
+pub use affine::frozen_affine;
 pub use batch::{Linear, Products, left_shared, linear, right_shared};
 pub use conv::{Conv2d, conv2d};
 pub use conv1d::{constant_weights, conv1d_constant, packed_weight};

@@ -69,9 +69,23 @@ impl FrozenAffine {
         y
     }
 
-    /// The values per (batch, channel) row of `layout`.
-    fn inner(layout: &Layout) -> usize {
-        layout.dims()[2..].iter().product()
+    /// The values per (batch, channel) row of a tensor of shape `dims`.
+    fn inner(dims: &[usize]) -> usize {
+        dims[2..].iter().product()
+    }
+
+    /// `∂x = g · s` in `T`, shaped as `x`.
+    fn backward<T: AffineFloat + candle_core::WithDType>(
+        &self,
+        x: &Tensor,
+        g: &Tensor,
+    ) -> Result<Tensor> {
+        let v = self.map(
+            &g.flatten_all()?.to_vec1::<T>()?,
+            Self::inner(x.dims()),
+            false,
+        );
+        Tensor::from_vec(v, x.shape(), x.device())
     }
 }
 
@@ -81,23 +95,16 @@ impl CustomOp1 for FrozenAffine {
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
-        let inner = Self::inner(l);
+        let inner = Self::inner(l.dims());
         let out = float_storages!("frozen_affine", [(x, s, l)], self.map(x, inner, true));
         Ok((out, l.shape().clone()))
     }
 
     fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
         let g = grad.contiguous()?;
-        let inner: usize = x.dims()[2..].iter().product();
         let dx = match g.dtype() {
-            candle_core::DType::F32 => {
-                let v = self.map(&g.flatten_all()?.to_vec1::<f32>()?, inner, false);
-                Tensor::from_vec(v, x.shape(), x.device())?
-            }
-            candle_core::DType::F64 => {
-                let v = self.map(&g.flatten_all()?.to_vec1::<f64>()?, inner, false);
-                Tensor::from_vec(v, x.shape(), x.device())?
-            }
+            candle_core::DType::F32 => self.backward::<f32>(x, &g)?,
+            candle_core::DType::F64 => self.backward::<f64>(x, &g)?,
             d => candle_core::bail!("frozen_affine backward: unsupported dtype {d:?}"),
         };
         Ok(Some(dx))

@@ -250,6 +250,16 @@ pub struct TrainActArgs {
     /// model.safetensors, e.g. a bundled policy's), to train it further; ignored on resume.
     #[arg(long, value_name = "FILE")]
     pub init: Option<PathBuf>,
+    /// With `--obs image`: take the camera backbone from an image Diffusion Policy's encoder
+    /// (its model.safetensors; same width, e.g. assets/policies/pusht_image_cpu_v3), its
+    /// GroupNorms turned into frozen BatchNorms with statistics calibrated on training
+    /// frames; the conversion's relative error is reported. Ignored on resume and with --init.
+    #[arg(long, value_name = "FILE", conflicts_with = "init")]
+    pub backbone_from: Option<PathBuf>,
+    /// With `--obs image`: keep the backbone fixed and cache each frame's feature map once
+    /// (exact: ACT trains without augmentation); a step then costs about a keypoint policy's.
+    #[arg(long)]
+    pub freeze_backbone: bool,
     /// Output directory; if it holds a training state, training resumes from it.
     #[arg(long, short, value_name = "DIR")]
     pub out: PathBuf,

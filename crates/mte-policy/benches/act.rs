@@ -85,6 +85,7 @@ fn train_step(bencher: divan::Bencher, preset: &str) {
                     state: Some(&state),
                     env: Some(&env),
                     images: &[],
+                    features: &[],
                 },
                 Some(&vae),
                 Some(&d),

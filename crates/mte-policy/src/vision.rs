@@ -82,6 +82,8 @@ impl BackboneNames {
 /// identity statistics (weight 1, bias 0, mean 0, variance 1).
 #[derive(Clone, Debug)]
 pub struct FrozenBatchNorm {
+    weight: Tensor,
+    bias: Tensor,
     scale: Tensor,
     shift: Tensor,
 }
@@ -90,11 +92,49 @@ impl FrozenBatchNorm {
     /// Load (or create) the `weight`, `bias`, `running_mean` and `running_var` of `c` channels.
     pub fn new(c: usize, vb: VarBuilder) -> Result<Self> {
         let get = |name: &str, v: f64| vb.get_with_hints(c, name, Init::Const(v));
-        let (w, b) = (get("weight", 1.0)?, get("bias", 0.0)?);
+        let (weight, bias) = (get("weight", 1.0)?.detach(), get("bias", 0.0)?.detach());
         let (m, v) = (get("running_mean", 0.0)?, get("running_var", 1.0)?);
-        let scale = (w * (v + f64::from(FROZEN_BN_EPS))?.sqrt()?.recip()?)?.detach();
-        let shift = (b - (m * &scale)?)?.detach();
-        Ok(Self { scale, shift })
+        let mut n = Self {
+            scale: weight.clone(),
+            shift: bias.clone(),
+            weight,
+            bias,
+        };
+        n.set_statistics(&m, &v)?;
+        Ok(n)
+    }
+
+    /// Replace the running statistics (`(C,)` each), keeping the affine weight and bias.
+    fn set_statistics(&mut self, mean: &Tensor, var: &Tensor) -> Result<()> {
+        let inv_std = (var + f64::from(FROZEN_BN_EPS))?.sqrt()?.recip()?;
+        self.scale = (&self.weight * inv_std)?.detach();
+        self.shift = (&self.bias - (mean * &self.scale)?)?.detach();
+        Ok(())
+    }
+
+    /// Sets the running statistics from `x` `(B, C, H, W)`, the layer's input, as a
+    /// GroupNorm with groups of `group` channels would see it on average: per sample and
+    /// group, the mean and (biased) variance over the group's channels and all positions,
+    /// averaged over the batch and given to every channel of the group. Returns `(mean, var)`,
+    /// `(C,)` each. Used to carry a GroupNorm backbone's weights over to frozen BatchNorm.
+    fn calibrate(&mut self, x: &Tensor, group: usize) -> Result<(Tensor, Tensor)> {
+        let (b, c, h, w) = x.dims4()?;
+        if group == 0 || !c.is_multiple_of(group) {
+            candle_core::bail!("{c} channels do not split into groups of {group}");
+        }
+        let g = x.detach().reshape((b, c / group, group * h * w))?;
+        let mean = g.mean_keepdim(2)?;
+        let var = g.broadcast_sub(&mean)?.sqr()?.mean(2)?.mean(0)?;
+        let mean = mean.squeeze(2)?.mean(0)?;
+        let per_channel = |t: Tensor| {
+            t.unsqueeze(1)?
+                .broadcast_as((c / group, group))?
+                .contiguous()?
+                .reshape(c)
+        };
+        let (mean, var) = (per_channel(mean)?, per_channel(var)?);
+        self.set_statistics(&mean, &var)?;
+        Ok((mean, var))
     }
 
     /// `(B, C, H, W)` in, the same shape out: one fused pass whose backward pass computes
@@ -125,6 +165,30 @@ impl Norm {
             Norm::Frozen(n) => n.forward(x),
         }
     }
+
+    /// Calibrates a frozen norm on its input `x` (recording its statistics in `stats`), then
+    /// applies it; a GroupNorm is only applied.
+    fn calibrate(
+        &mut self,
+        x: &Tensor,
+        group: usize,
+        stats: &mut Vec<NormStats>,
+    ) -> Result<Tensor> {
+        if let Norm::Frozen(n) = self {
+            let (mean, var) = n.calibrate(x, group)?;
+            stats.push(NormStats { mean, var });
+        }
+        self.forward(x)
+    }
+}
+
+/// The running statistics a calibration gave one frozen norm, `(C,)` each.
+#[derive(Clone, Debug)]
+pub struct NormStats {
+    /// `running_mean`.
+    pub mean: Tensor,
+    /// `running_var`.
+    pub var: Tensor,
 }
 
 /// torchvision's `BasicBlock`.
@@ -171,6 +235,33 @@ impl BasicBlock {
         };
         relu(&(out + id)?)
     }
+
+    /// [`Self::forward`], calibrating each frozen norm on its input in the order of
+    /// [`BasicBlock::NORMS`].
+    fn calibrate(
+        &mut self,
+        x: &Tensor,
+        group: usize,
+        stats: &mut Vec<NormStats>,
+    ) -> Result<Tensor> {
+        let p = Products::Fused;
+        let out = relu(
+            &self
+                .bn1
+                .calibrate(&self.conv1.forward(x, p)?, group, stats)?,
+        )?;
+        let out = self
+            .bn2
+            .calibrate(&self.conv2.forward(&out, p)?, group, stats)?;
+        let id = match &mut self.downsample {
+            Some((c, n)) => n.calibrate(&c.forward(x, p)?, group, stats)?,
+            None => x.clone(),
+        };
+        relu(&(out + id)?)
+    }
+
+    /// The names of a block's norms, in calibration order.
+    const NORMS: [&'static str; 3] = ["bn1", "bn2", "downsample.1"];
 }
 
 /// A camera frame as stored (RGB u8, `h x w x 3`, row-major) appended to `out` as a
@@ -258,6 +349,35 @@ impl ResNet18 {
             out.push(h.clone());
         }
         Ok(out)
+    }
+
+    /// Sets every frozen norm's running statistics from the batch `x` `(B, 3, H, W)`, layer
+    /// by layer in forward order, each from its input as the already calibrated layers before
+    /// it produce it (see `FrozenBatchNorm::calibrate`, groups of `group` channels). Returns
+    /// each norm's key below the backbone's prefix (named by `names`) with its statistics.
+    /// A GroupNorm backbone is left as it is and returns nothing.
+    pub fn calibrate_frozen_norms(
+        &mut self,
+        x: &Tensor,
+        group: usize,
+        names: BackboneNames,
+    ) -> Result<Vec<(String, NormStats)>> {
+        let mut stats = Vec::new();
+        let h = self
+            .bn1
+            .calibrate(&self.conv1.forward(x, Products::Fused)?, group, &mut stats)?;
+        let mut h = max_pool_3x3_s2(&relu(&h)?)?;
+        let mut keys = vec![names.stem().1.to_string()];
+        for (i, layer) in self.layers.iter_mut().enumerate() {
+            for (j, block) in layer.iter_mut().enumerate() {
+                h = block.calibrate(&h, group, &mut stats)?;
+                let norms = if block.downsample.is_some() { 3 } else { 2 };
+                for n in &BasicBlock::NORMS[..norms] {
+                    keys.push(format!("{}.{j}.{n}", names.layer(i)));
+                }
+            }
+        }
+        Ok(keys.into_iter().zip(stats).collect())
     }
 
     /// The feature map after `layer4`.

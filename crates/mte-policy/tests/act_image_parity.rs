@@ -102,6 +102,7 @@ fn actions(f: &Fixture, images: Tensor) -> Tensor {
         state: Some(&f.io["state"]),
         env: None,
         images: &images,
+        features: &[],
     };
     f.net.forward(&inputs, None, None).expect("forward").actions
 }
@@ -174,6 +175,7 @@ fn a_camera_count_other_than_the_configs_is_an_error() {
         state: Some(&f.io["state"]),
         env: None,
         images: &[],
+        features: &[],
     };
     let e = f
         .net

@@ -29,6 +29,7 @@ fn inputs(io: &HashMap<String, Tensor>) -> ActInputs<'_> {
         state: Some(&io["state"]),
         env: Some(&io["env"]),
         images: &[],
+        features: &[],
     }
 }
 

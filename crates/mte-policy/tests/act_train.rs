@@ -72,6 +72,8 @@ fn trains_checkpoints_loads_and_resumes() {
         seed: 3,
         checkpoint_every: 30,
         init: None,
+        backbone_from: None,
+        freeze_backbone: false,
     };
     let mut trace = Vec::new();
     let r = train(&data(), tiny(), &tc, dir.path(), &mut |_, l1, _| {
@@ -196,6 +198,8 @@ fn bad_settings_are_typed_errors() {
         seed: 0,
         checkpoint_every: 0,
         init: None,
+        backbone_from: None,
+        freeze_backbone: false,
     };
     let e = train(&data(), tiny(), &tc, dir.path(), &mut |_, _, _| {}).expect_err("no steps");
     assert!(e.to_string().contains("steps"), "{e}");

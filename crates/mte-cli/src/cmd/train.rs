@@ -174,6 +174,8 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
         seed: a.seed,
         checkpoint_every: a.checkpoint_every,
         init: a.init.clone(),
+        backbone_from: a.backbone_from.clone(),
+        freeze_backbone: a.freeze_backbone,
     };
     let bar = Bar::for_cli(cli, "train act", a.steps);
     let report = train_act(&data, config, &tc, &a.out, &mut |step, l1, kld| {
@@ -196,7 +198,22 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
         )?,
         Format::Text => {}
     }
+    if let (Some(e), Format::Text, false) = (report.backbone_relative_error, cli.format, cli.quiet)
+    {
+        writeln!(
+            out,
+            "backbone from {}: relative error {e:.4} on 64 training frames",
+            dp_name(a)
+        )?;
+    }
     Ok(())
+}
+
+fn dp_name(a: &TrainActArgs) -> String {
+    a.backbone_from
+        .as_deref()
+        .map(|p| p.display().to_string())
+        .unwrap_or_default()
 }
 
 /// `mte train encoder`

@@ -315,10 +315,15 @@ impl Vision {
     /// The tokens `(B, h w, dm)` and their position embedding `(1, h w, dm)` of one camera's
     /// normalised frames `(B, 3, H, W)`.
     fn tokens(&self, img: &Tensor, p: Products) -> Result<(Tensor, Tensor)> {
-        let f = self.proj.forward(&self.backbone.forward(img, p)?, p)?;
+        self.tokens_of_features(&self.backbone.forward(img, p)?, p)
+    }
+
+    /// [`Self::tokens`] from the backbone's feature map `(B, C, h, w)`.
+    fn tokens_of_features(&self, features: &Tensor, p: Products) -> Result<(Tensor, Tensor)> {
+        let f = self.proj.forward(features, p)?;
         let (b, dm, h, w) = f.dims4()?;
         let tokens = f.reshape((b, dm, h * w))?.transpose(1, 2)?.contiguous()?;
-        let pos = self.position((h, w, dm), img.device())?;
+        let pos = self.position((h, w, dm), features.device())?;
         Ok((tokens, pos))
     }
 }
@@ -332,6 +337,10 @@ pub struct ActInputs<'a> {
     pub env: Option<&'a Tensor>,
     /// One `(B, 3, H, W)` batch of normalised frames per camera, in the config's order.
     pub images: &'a [Tensor],
+    /// Instead of `images` (which must then be empty): each camera's backbone feature map
+    /// `(B, C, h, w)`, as [`ActNet::backbone_features`] gives it (a frozen backbone's
+    /// cached output, for training).
+    pub features: &'a [Tensor],
 }
 
 /// The ACT network (weights under `model.` in LeRobot's checkpoints).
@@ -464,6 +473,16 @@ impl ActNet {
         &self.config
     }
 
+    /// The backbone's feature map `(B, C, h, w)` of one camera's normalised frames
+    /// `(B, 3, H, W)`, each sample's products of a batch of one's shape (so a cache of it
+    /// gives the bits an evaluation computes); `None` without cameras.
+    pub fn backbone_features(&self, img: &Tensor) -> Result<Option<Tensor>> {
+        self.vision
+            .as_ref()
+            .map(|v| v.backbone.forward(img, Products::PerSample))
+            .transpose()
+    }
+
     /// The CVAE encoder's fixed position table `(1, S, D)` (LeRobot's `vae_encoder_pos_enc`
     /// buffer, written into checkpoints so LeRobot loads them strictly).
     pub fn vae_pos_enc(&self) -> Option<&Tensor> {
@@ -510,7 +529,9 @@ impl ActNet {
         vae: Option<&VaeInput<'_>>,
         d: Option<&Dropout<'_>>,
     ) -> Result<ActOutput> {
-        let first = inputs.state.or(inputs.env).or(inputs.images.first());
+        let first = (inputs.state.or(inputs.env))
+            .or(inputs.images.first())
+            .or(inputs.features.first());
         let b = first.map(|t| t.dim(0)).transpose()?.unwrap_or(1);
         let dev = self.pos_1d.device();
         let (latent, z) = match (&self.vae, vae) {
@@ -565,18 +586,27 @@ impl ActNet {
             }
         }
         let mut pos = vec![self.pos_1d.unsqueeze(0)?];
+        let (images, features) = (inputs.images, inputs.features);
         match &self.vision {
-            Some(v) if inputs.images.len() == self.cameras => {
-                for img in inputs.images {
+            Some(v) if images.len() == self.cameras && features.is_empty() => {
+                for img in images {
                     let (t, q) = v.tokens(img, p)?;
                     tokens.push(t);
                     pos.push(q);
                 }
             }
-            None if inputs.images.is_empty() => {}
+            Some(v) if features.len() == self.cameras && images.is_empty() => {
+                for f in features {
+                    let (t, q) = v.tokens_of_features(f, p)?;
+                    tokens.push(t);
+                    pos.push(q);
+                }
+            }
+            None if images.is_empty() && features.is_empty() => {}
             _ => candle_core::bail!(
-                "{} camera batches given, the config has {}",
-                inputs.images.len(),
+                "{} camera batches and {} feature maps given, the config has {} cameras",
+                images.len(),
+                features.len(),
                 self.cameras
             ),
         }

@@ -202,6 +202,7 @@ impl ActPolicy {
             state: obs.state.as_ref(),
             env,
             images: &images,
+            features: &[],
         };
         Ok(self.net.forward(&inputs, None, None)?.actions)
     }
@@ -220,7 +221,26 @@ impl ActPolicy {
             state: obs.state.as_ref(),
             env: obs.env.as_ref(),
             images,
+            features: &[],
         })
+    }
+
+    /// The backbone's feature map `(B, C, h, w)` of `obs`'s frames (normalised as the
+    /// network reads them; each sample's products of a batch of one's shape, so the bits
+    /// an evaluation computes); `None` without a camera.
+    pub fn backbone_features(&self, obs: &ObsTensors) -> Result<Option<Tensor>, PolicyError> {
+        let (Some(cam), Some(img)) = (&self.camera, &obs.image) else {
+            return Ok(None);
+        };
+        Ok(self.net.backbone_features(&cam.normalize(img)?)?)
+    }
+
+    /// `obs`'s frames normalised as the network reads them; `None` without a camera.
+    pub fn normalized_image(&self, obs: &ObsTensors) -> Result<Option<Tensor>, PolicyError> {
+        match (&self.camera, &obs.image) {
+            (Some(cam), Some(img)) => Ok(Some(cam.normalize(img)?)),
+            _ => Ok(None),
+        }
     }
 
     /// Normalises one action row in place.

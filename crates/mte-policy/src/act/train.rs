@@ -39,6 +39,17 @@ pub struct ActTrainConfig {
     /// start afresh, as on resuming. Ignored when resuming.
     #[serde(default)]
     pub init: Option<PathBuf>,
+    /// A Diffusion Policy image checkpoint's `model.safetensors` whose encoder backbone
+    /// (same width) becomes this policy's camera backbone before training, its frozen
+    /// norms calibrated on training frames ([`super::warm_start`]). Ignored when resuming
+    /// (the run's checkpoint holds the converted backbone) and after `init`.
+    #[serde(default)]
+    pub backbone_from: Option<PathBuf>,
+    /// Keep the camera backbone fixed and compute each frame's feature map once, before
+    /// the first step: a step then costs about what a keypoint policy's does. Exact, since
+    /// ACT trains without image augmentation; the cache takes `C h w` floats per frame.
+    #[serde(default)]
+    pub freeze_backbone: bool,
 }
 
 impl ActTrainConfig {
@@ -66,6 +77,9 @@ pub struct ActTrainReport {
     pub final_kld: f32,
     /// Wall time of this call (s).
     pub seconds: f64,
+    /// With `backbone_from` on a fresh run: the converted backbone's relative error against
+    /// the Diffusion Policy encoder's on held-out training frames.
+    pub backbone_relative_error: Option<f64>,
 }
 
 const STATE_FILE: &str = "training_state.json";
@@ -79,22 +93,22 @@ struct TrainingState {
 /// One batch: inputs, targets and padding.
 struct Batch {
     obs: ObsTensors,
+    /// The frames' cached feature maps (frozen backbone).
+    features: Option<Tensor>,
     actions: Tensor,
     is_pad: Tensor,
     eps: Tensor,
 }
 
-/// Frames `idx` of `data` as a normalised batch (targets: the next `chunk_size` actions).
-fn batch(
+/// Frames `idx` of `data` as the policy's observation tensors, their frames left out
+/// unless `images`.
+fn observations(
     policy: &ActPolicy,
     data: &TrainData,
-    starts: &[usize],
     idx: &[usize],
-    rng: &mut ChaCha8Rng,
-) -> Result<Batch, PolicyError> {
-    let c = policy.config();
-    let (s, a) = (c.chunk_size, c.action_dim()?);
-    let frames = (data.action.len() / a).max(1);
+    images: bool,
+) -> Result<ObsTensors, PolicyError> {
+    let frames = (data.action.len() / policy.config().action_dim()?).max(1);
     let sd = data.state.len() / frames;
     let ed = data.env_state.as_ref().map(|e| e.len() / frames);
     let px = data.images.as_ref().map(|i| i.len() / frames);
@@ -115,7 +129,63 @@ fn batch(
         })
         .collect();
     let refs: Vec<&crate::policy::Observation> = obs.iter().collect();
-    let obs = policy.obs_tensors(&refs)?;
+    let mut t = policy.obs_tensors(&refs)?;
+    if !images {
+        t.image = None;
+    }
+    Ok(t)
+}
+
+/// A frozen backbone's feature maps of every frame, `C h w` floats each.
+struct FeatureCache {
+    values: Vec<f32>,
+    /// `(C, h, w)`.
+    shape: (usize, usize, usize),
+}
+
+impl FeatureCache {
+    /// Every frame of `data` through `policy`'s backbone, in chunks of 128 frames.
+    fn build(policy: &ActPolicy, data: &TrainData, frames: usize) -> Result<Self, PolicyError> {
+        let mut values = Vec::new();
+        let mut shape = (0, 0, 0);
+        for lo in (0..frames).step_by(128) {
+            let idx: Vec<usize> = (lo..(lo + 128).min(frames)).collect();
+            let obs = observations(policy, data, &idx, true)?;
+            let f = policy
+                .backbone_features(&obs)?
+                .ok_or_else(|| config_err("freeze_backbone", true, "a policy with a camera"))?;
+            let (_, c, h, w) = f.dims4()?;
+            shape = (c, h, w);
+            values.extend(f.flatten_all()?.to_vec1::<f32>()?);
+        }
+        Ok(Self { values, shape })
+    }
+
+    /// The feature maps of frames `idx`, `(B, C, h, w)`.
+    fn gather(&self, idx: &[usize]) -> Result<Tensor, PolicyError> {
+        let (c, h, w) = self.shape;
+        let n = c * h * w;
+        let mut out = Vec::with_capacity(idx.len() * n);
+        for &f in idx {
+            out.extend_from_slice(&self.values[f * n..(f + 1) * n]);
+        }
+        Ok(Tensor::from_vec(out, (idx.len(), c, h, w), &Device::Cpu)?)
+    }
+}
+
+/// Frames `idx` of `data` as a normalised batch (targets: the next `chunk_size` actions);
+/// with a `cache`, the frames' feature maps from it instead of the frames.
+fn batch(
+    policy: &ActPolicy,
+    data: &TrainData,
+    starts: &[usize],
+    idx: &[usize],
+    cache: Option<&FeatureCache>,
+    rng: &mut ChaCha8Rng,
+) -> Result<Batch, PolicyError> {
+    let c = policy.config();
+    let (s, a) = (c.chunk_size, c.action_dim()?);
+    let obs = observations(policy, data, idx, cache.is_none())?;
     let mut actions = Vec::with_capacity(idx.len() * s * a);
     let mut pad = Vec::with_capacity(idx.len() * s);
     for &f in idx {
@@ -136,6 +206,7 @@ fn batch(
     let dev = Device::Cpu;
     Ok(Batch {
         obs,
+        features: cache.map(|c| c.gather(idx)).transpose()?,
         actions: Tensor::from_vec(actions, (b, s, a), &dev)?,
         is_pad: Tensor::from_vec(pad, (b, s), &dev)?,
         eps: Tensor::from_vec(eps, (b, c.latent_dim), &dev)?,
@@ -156,12 +227,35 @@ pub fn train(
     let t0 = std::time::Instant::now();
     let varmap = VarMap::new();
     let vb = crate::init::seeded_var_builder(&varmap, train.seed, DType::F32, &Device::Cpu);
-    let policy = ActPolicy::new(config.clone(), data.stats.clone(), vb)?;
-    let mut step = resume(&varmap, out)?;
-    if let Some(init) = train.init.as_ref().filter(|_| step == 0) {
-        load_weights(&varmap, init)?;
+    let policy = ActPolicy::new(config.clone(), data.stats.clone(), vb.clone())?;
+    let mut starts = vec![0usize];
+    for l in &data.episode_lengths {
+        starts.push(starts[starts.len() - 1] + l);
     }
-    let (vars, backbone) = trainable(&varmap)?;
+    let frames = starts[starts.len() - 1];
+    if frames == 0 {
+        return Err(config_err("dataset", 0, "at least one frame"));
+    }
+    let mut step = resume(&varmap, out)?;
+    let mut backbone_relative_error = None;
+    if step == 0 {
+        if let Some(init) = &train.init {
+            load_weights(&varmap, init)?;
+        } else if let Some(dp) = &train.backbone_from {
+            let e = warm_start_backbone(&policy, &varmap, data, dp, train.seed, frames)?;
+            backbone_relative_error = Some(e);
+        }
+    }
+    // A frozen norm reads its statistics when it is built: rebuild on the loaded variables
+    // (the same variables; only the norms' derived scale and shift are new).
+    let policy = ActPolicy::new(config.clone(), data.stats.clone(), vb)?;
+    let (vars, mut backbone) = trainable(&varmap)?;
+    let cache = if train.freeze_backbone {
+        backbone.clear();
+        Some(FeatureCache::build(&policy, data, frames)?)
+    } else {
+        None
+    };
     let adamw = |vars: Vec<Var>, lr: f64| {
         AdamW::new(
             vars,
@@ -179,14 +273,6 @@ pub fn train(
         .collect();
     let mut opt = adamw(vars, config.optimizer_lr)?;
     let mut opt_backbone = adamw(backbone, config.optimizer_lr_backbone)?;
-    let mut starts = vec![0usize];
-    for l in &data.episode_lengths {
-        starts.push(starts[starts.len() - 1] + l);
-    }
-    let frames = starts[starts.len() - 1];
-    if frames == 0 {
-        return Err(config_err("dataset", 0, "at least one frame"));
-    }
     let (start_step, mut recent) = (step, Vec::<(f32, f32)>::new());
     while step < train.steps {
         let mut rng = ChaCha8Rng::seed_from_u64(
@@ -195,7 +281,7 @@ pub fn train(
         let idx: Vec<usize> = (0..train.batch_size)
             .map(|_| rng.random_range(0..frames))
             .collect();
-        let b = batch(&policy, data, &starts, &idx, &mut rng)?;
+        let b = batch(&policy, data, &starts, &idx, cache.as_ref(), &mut rng)?;
         let drop_rng = RefCell::new(ChaCha8Rng::seed_from_u64(rng.random()));
         let dropout = Dropout::new(config.dropout, &drop_rng);
         let vae = VaeInput {
@@ -204,7 +290,10 @@ pub fn train(
             eps: &b.eps,
         };
         let mut images = Vec::new();
-        let inputs = policy.inputs_of(&b.obs, &mut images)?;
+        let mut inputs = policy.inputs_of(&b.obs, &mut images)?;
+        if let Some(f) = &b.features {
+            inputs.features = std::slice::from_ref(f);
+        }
         let o = policy.net().forward(&inputs, Some(&vae), Some(&dropout))?;
         let (loss, l1, kld) = policy.net().loss(&o, &b.actions, &b.is_pad)?;
         if !l1.is_finite() || !kld.is_finite() {
@@ -237,7 +326,62 @@ pub fn train(
         final_l1: recent.iter().map(|r| r.0).sum::<f32>() / n,
         final_kld: recent.iter().map(|r| r.1).sum::<f32>() / n,
         seconds: t0.elapsed().as_secs_f64(),
+        backbone_relative_error,
     })
+}
+
+/// Replaces the backbone variables in `varmap` with the Diffusion Policy encoder at `path`,
+/// calibrated on 256 training frames and checked on 64 others drawn from `seed`; returns
+/// the relative error ([`super::warm_start::BackboneWarmStart::relative_error`]).
+fn warm_start_backbone(
+    policy: &ActPolicy,
+    varmap: &VarMap,
+    data: &TrainData,
+    path: &Path,
+    seed: u64,
+    frames: usize,
+) -> Result<f64, PolicyError> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5741_524D_5354_4152);
+    let mut images = |n: usize| -> Result<Tensor, PolicyError> {
+        let idx: Vec<usize> = (0..n).map(|_| rng.random_range(0..frames)).collect();
+        policy
+            .normalized_image(&observations(policy, data, &idx, true)?)?
+            .ok_or_else(|| config_err("backbone_from", path.display(), "a policy with a camera"))
+    };
+    let (calibration, held_out) = (images(256)?, images(64)?);
+    let width = policy.config().vision_backbone_width;
+    let ws = super::warm_start::backbone_from_diffusion(path, width, &calibration, &held_out)?;
+    let vars = varmap
+        .data()
+        .lock()
+        .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
+    let mut set = 0;
+    for (name, var) in vars.iter() {
+        let Some(below) = name.strip_prefix("backbone.") else {
+            continue;
+        };
+        let t = ws.tensors.get(below).ok_or_else(|| {
+            crate::checkpoint::ck(path, format!("no tensor for the backbone's {below}"))
+        })?;
+        if t.shape() != var.shape() {
+            let why = format!(
+                "{below} has shape {:?}, ACT expects {:?}",
+                t.dims(),
+                var.dims()
+            );
+            return Err(crate::checkpoint::ck(path, why));
+        }
+        var.set(t)?;
+        set += 1;
+    }
+    if set != ws.tensors.len() {
+        return Err(config_err(
+            "backbone_from",
+            set,
+            format!("{} tensors", ws.tensors.len()),
+        ));
+    }
+    Ok(ws.relative_error)
 }
 
 /// The variables an optimiser moves, split into (the rest, the backbone's): LeRobot's two
@@ -406,6 +550,115 @@ mod tests {
         (c, data)
     }
 
+    /// A width-16 image ACT (Diffusion Policy's GroupNorm needs multiples of 16) and a
+    /// random Diffusion Policy backbone of that width saved in `dir`.
+    fn width16(dir: &Path) -> (ActConfig, TrainData, PathBuf) {
+        let (c, data) = tiny_image();
+        let c = ActConfig {
+            vision_backbone_width: 16,
+            ..c
+        };
+        let vm = VarMap::new();
+        let vb = crate::init::seeded_var_builder(&vm, 9, DType::F32, &Device::Cpu);
+        crate::vision::ResNet18::new(
+            16,
+            crate::vision::BackboneNorm::Group,
+            crate::vision::BackboneNames::Sequential,
+            vb.pp(super::super::warm_start::DIFFUSION_BACKBONE),
+        )
+        .expect("dp backbone");
+        let path = dir.join("dp.safetensors");
+        vm.save(&path).expect("save");
+        (c, data, path)
+    }
+
+    /// The cached feature maps give the network exactly the output the frames give it.
+    #[test]
+    fn cached_features_give_the_bits_the_frames_give() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let (c, data, _) = width16(dir.path());
+        let vm = VarMap::new();
+        let vb = crate::init::seeded_var_builder(&vm, 2, DType::F32, &Device::Cpu);
+        let policy = ActPolicy::new(c, data.stats.clone(), vb).expect("policy");
+        let cache = FeatureCache::build(&policy, &data, 12).expect("cache");
+        let idx = [0, 3, 5, 9];
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let from_frames = batch(&policy, &data, &[0, 12], &idx, None, &mut rng).expect("b");
+        let from_cache = batch(&policy, &data, &[0, 12], &idx, Some(&cache), &mut rng).expect("c");
+        assert!(from_cache.obs.image.is_none() && from_frames.features.is_none());
+        let mut images = Vec::new();
+        let a = policy
+            .inputs_of(&from_frames.obs, &mut images)
+            .expect("inputs");
+        let mut none = Vec::new();
+        let mut b = policy
+            .inputs_of(&from_cache.obs, &mut none)
+            .expect("inputs");
+        let f = from_cache.features.expect("features");
+        b.features = std::slice::from_ref(&f);
+        let out = |i| {
+            let t = policy
+                .net()
+                .forward(&i, None, None)
+                .expect("forward")
+                .actions;
+            t.flatten_all()
+                .and_then(|t| t.to_vec1::<f32>())
+                .expect("values")
+        };
+        assert_eq!(out(a), out(b));
+    }
+
+    /// A warm start from a Diffusion Policy backbone with the backbone frozen: the
+    /// checkpoint's convolutions are the Diffusion Policy's, its norms carry calibrated
+    /// statistics, the rest trained, and the run reports the conversion's error.
+    #[test]
+    fn a_frozen_backbone_from_diffusion_policy_stays_as_converted() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let (c, data, dp) = width16(dir.path());
+        let tc = ActTrainConfig {
+            steps: 3,
+            batch_size: 4,
+            seed: 5,
+            checkpoint_every: 0,
+            init: None,
+            backbone_from: Some(dp.clone()),
+            freeze_backbone: true,
+        };
+        let out = dir.path().join("run");
+        let r = train(&data, c.clone(), &tc, &out, &mut |_, _, _| {}).expect("train");
+        let e = r.backbone_relative_error.expect("error reported");
+        assert!(e.is_finite() && e >= 0.0, "{e}");
+        let saved =
+            candle_core::safetensors::load(out.join(crate::checkpoint::WEIGHTS), &Device::Cpu)
+                .expect("weights");
+        let src = candle_core::safetensors::load(&dp, &Device::Cpu).expect("dp");
+        let values = |t: &Tensor| t.flatten_all().and_then(|t| t.to_vec1::<f32>()).expect("v");
+        assert_eq!(
+            values(&saved["model.backbone.layer2.0.conv1.weight"]),
+            values(&src["diffusion.rgb_encoder.backbone.5.0.conv1.weight"])
+        );
+        assert_eq!(
+            values(&saved["model.backbone.layer1.1.bn2.weight"]),
+            values(&src["diffusion.rgb_encoder.backbone.4.1.bn2.weight"])
+        );
+        let var = values(&saved["model.backbone.layer3.1.bn1.running_var"]);
+        assert!(var.iter().any(|&v| v != 1.0), "statistics calibrated");
+        // A resumed run goes on from the checkpoint's backbone; the warm start is not redone.
+        let more = ActTrainConfig { steps: 4, ..tc };
+        let r2 = train(&data, c, &more, &out, &mut |_, _, _| {}).expect("resume");
+        assert_eq!((r2.steps_run, r2.backbone_relative_error), (1, None));
+        let again =
+            candle_core::safetensors::load(out.join(crate::checkpoint::WEIGHTS), &Device::Cpu)
+                .expect("weights");
+        for k in [
+            "model.backbone.layer3.1.bn1.running_var",
+            "model.backbone.conv1.weight",
+        ] {
+            assert_eq!(values(&again[k]), values(&saved[k]), "{k}");
+        }
+    }
+
     #[test]
     fn backbone_norm_tensors_are_recognised_by_name() {
         for frozen in [
@@ -437,6 +690,8 @@ mod tests {
             seed: 5,
             checkpoint_every: 0,
             init: None,
+            backbone_from: None,
+            freeze_backbone: false,
         };
         train(&data, c.clone(), &tc, dir.path(), &mut |_, _, _| {}).expect("train");
         let saved = candle_core::safetensors::load(
@@ -549,7 +804,7 @@ mod tests {
     fn every_parameter_gets_its_finite_difference_gradient() {
         let (policy, varmap, data) = tiny();
         let mut rng = ChaCha8Rng::seed_from_u64(0);
-        let b = batch(&policy, &data, &[0, 12], &[0, 3, 5, 9], &mut rng).expect("batch");
+        let b = batch(&policy, &data, &[0, 12], &[0, 3, 5, 9], None, &mut rng).expect("batch");
         let loss_of = || {
             let cell = RefCell::new(ChaCha8Rng::seed_from_u64(1));
             let d = Dropout::new(0.0, &cell);

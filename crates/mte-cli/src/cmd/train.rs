@@ -198,22 +198,17 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
         )?,
         Format::Text => {}
     }
-    if let (Some(e), Format::Text, false) = (report.backbone_relative_error, cli.format, cli.quiet)
-    {
+    let converted = report
+        .backbone_relative_error
+        .zip(a.backbone_from.as_deref());
+    if let (Some((e, dp)), Format::Text, false) = (converted, cli.format, cli.quiet) {
+        let dp = dp.display();
         writeln!(
             out,
-            "backbone from {}: relative error {e:.4} on 64 training frames",
-            dp_name(a)
+            "backbone from {dp}: relative error {e:.4} on 64 training frames"
         )?;
     }
     Ok(())
-}
-
-fn dp_name(a: &TrainActArgs) -> String {
-    a.backbone_from
-        .as_deref()
-        .map(|p| p.display().to_string())
-        .unwrap_or_default()
 }
 
 /// `mte train encoder`

@@ -136,6 +136,39 @@ impl ActPolicy {
     /// # Errors
     /// An absent or misshapen input, named.
     pub fn obs_tensors(&self, obs: &[&Observation]) -> Result<ObsTensors, PolicyError> {
+        let mut t = self.obs_tensors_without_image(obs)?;
+        t.image = match &self.camera {
+            Some(cam) => {
+                let mut flat = Vec::with_capacity(obs.len() * 3 * cam.h * cam.w);
+                for o in obs {
+                    let px = o.image.as_deref().unwrap_or_default();
+                    crate::vision::push_chw(px, cam.h, cam.w, &mut flat).map_err(|reason| {
+                        PolicyError::Input {
+                            name: "observation.image",
+                            reason,
+                        }
+                    })?;
+                }
+                Some(Tensor::from_vec(
+                    flat,
+                    (obs.len(), 3, cam.h, cam.w),
+                    &Device::Cpu,
+                )?)
+            }
+            None => None,
+        };
+        Ok(t)
+    }
+
+    /// [`Self::obs_tensors`] without the frames (`image` is `None`, and the observations'
+    /// frames are not read): for training on a frozen backbone's cached feature maps.
+    ///
+    /// # Errors
+    /// An absent or misshapen state, named.
+    pub fn obs_tensors_without_image(
+        &self,
+        obs: &[&Observation],
+    ) -> Result<ObsTensors, PolicyError> {
         let dev = Device::Cpu;
         let rows = |norm: &Normalizer,
                     get: &dyn Fn(&Observation) -> Option<Vec<f32>>,
@@ -167,23 +200,11 @@ impl ActPolicy {
             .as_ref()
             .map(|n| rows(n, &|o| o.env_state.clone(), "observation.environment_state"))
             .transpose()?;
-        let image = match &self.camera {
-            Some(cam) => {
-                let mut flat = Vec::with_capacity(obs.len() * 3 * cam.h * cam.w);
-                for o in obs {
-                    let px = o.image.as_deref().unwrap_or_default();
-                    crate::vision::push_chw(px, cam.h, cam.w, &mut flat).map_err(|reason| {
-                        PolicyError::Input {
-                            name: "observation.image",
-                            reason,
-                        }
-                    })?;
-                }
-                Some(Tensor::from_vec(flat, (obs.len(), 3, cam.h, cam.w), &dev)?)
-            }
-            None => None,
-        };
-        Ok(ObsTensors { state, env, image })
+        Ok(ObsTensors {
+            state,
+            env,
+            image: None,
+        })
     }
 
     /// The network's output for `obs` with its frame replaced by `image` (`(B, 3, H, W)` in

@@ -7,6 +7,7 @@
 //! (AdamW's moments restart, as for Diffusion Policy).
 
 use std::cell::RefCell;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor, Var};
@@ -121,19 +122,17 @@ fn observations(
                 .as_ref()
                 .zip(ed)
                 .map(|(e, d)| e[f * d..(f + 1) * d].to_vec()),
-            image: data
-                .images
-                .as_ref()
-                .zip(px)
+            image: (data.images.as_ref().zip(px))
+                .filter(|_| images)
                 .map(|(i, n)| i[f * n..(f + 1) * n].to_vec()),
         })
         .collect();
     let refs: Vec<&crate::policy::Observation> = obs.iter().collect();
-    let mut t = policy.obs_tensors(&refs)?;
-    if !images {
-        t.image = None;
+    if images {
+        policy.obs_tensors(&refs)
+    } else {
+        policy.obs_tensors_without_image(&refs)
     }
-    Ok(t)
 }
 
 /// A frozen backbone's feature maps of every frame, `C h w` floats each.
@@ -351,29 +350,9 @@ fn warm_start_backbone(
     let (calibration, held_out) = (images(256)?, images(64)?);
     let width = policy.config().vision_backbone_width;
     let ws = super::warm_start::backbone_from_diffusion(path, width, &calibration, &held_out)?;
-    let vars = varmap
-        .data()
-        .lock()
-        .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
-    let mut set = 0;
-    for (name, var) in vars.iter() {
-        let Some(below) = name.strip_prefix("backbone.") else {
-            continue;
-        };
-        let t = ws.tensors.get(below).ok_or_else(|| {
-            crate::checkpoint::ck(path, format!("no tensor for the backbone's {below}"))
-        })?;
-        if t.shape() != var.shape() {
-            let why = format!(
-                "{below} has shape {:?}, ACT expects {:?}",
-                t.dims(),
-                var.dims()
-            );
-            return Err(crate::checkpoint::ck(path, why));
-        }
-        var.set(t)?;
-        set += 1;
-    }
+    let set = set_variables(varmap, path, &ws.tensors, |name| {
+        name.strip_prefix("backbone.").map(str::to_string)
+    })?;
     if set != ws.tensors.len() {
         return Err(config_err(
             "backbone_from",
@@ -451,25 +430,42 @@ fn resume(varmap: &VarMap, out: &Path) -> Result<usize, PolicyError> {
 /// `model.vae_encoder_pos_enc`) are ignored. Returns how many variables were set.
 pub fn load_weights(varmap: &VarMap, path: &Path) -> Result<usize, PolicyError> {
     let weights = candle_core::safetensors::load(path, &Device::Cpu)?;
+    set_variables(varmap, path, &weights, |name| Some(format!("model.{name}")))
+}
+
+/// Sets each variable of `varmap` whose name `key_of` maps to a key from `tensors[key]`
+/// (read from `path`, named in errors); a missing key or a different shape is an error
+/// naming it. Returns how many variables were set.
+fn set_variables(
+    varmap: &VarMap,
+    path: &Path,
+    tensors: &HashMap<String, Tensor>,
+    key_of: impl Fn(&str) -> Option<String>,
+) -> Result<usize, PolicyError> {
     let vars = varmap
         .data()
         .lock()
         .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
+    let mut set = 0;
     for (name, var) in vars.iter() {
-        let t = weights
-            .get(&format!("model.{name}"))
-            .ok_or_else(|| crate::checkpoint::ck(path, format!("missing model.{name}")))?;
+        let Some(key) = key_of(name) else {
+            continue;
+        };
+        let t = tensors
+            .get(&key)
+            .ok_or_else(|| crate::checkpoint::ck(path, format!("missing {key}")))?;
         if t.shape() != var.shape() {
             let why = format!(
-                "model.{name} has shape {:?}, the policy expects {:?}",
+                "{key} has shape {:?}, the policy expects {:?}",
                 t.dims(),
                 var.dims()
             );
             return Err(crate::checkpoint::ck(path, why));
         }
         var.set(t)?;
+        set += 1;
     }
-    Ok(vars.len())
+    Ok(set)
 }
 
 #[cfg(test)]

@@ -68,6 +68,20 @@ fn is_norm(name: &str) -> bool {
             .is_some_and(|m| m.starts_with("bn"))
 }
 
+/// ACT's frozen-BatchNorm backbone at stem width `width` from its tensors (torchvision's
+/// names).
+fn frozen_backbone(
+    width: usize,
+    tensors: HashMap<String, Tensor>,
+) -> candle_core::Result<ResNet18> {
+    ResNet18::new(
+        width,
+        BackboneNorm::FrozenBatch,
+        BackboneNames::Torchvision,
+        VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu),
+    )
+}
+
 /// Converts the GroupNorm backbone of the Diffusion Policy weights at `path` (stem width
 /// `width`) into ACT's frozen-BatchNorm backbone, calibrated on the normalised frames
 /// `calibration` `(B, 3, H, W)` and checked on `held_out` (normalised as ACT's camera
@@ -117,12 +131,7 @@ pub fn backbone_from_diffusion(
         VarBuilder::from_tensors(all, DType::F32, &dev).pp(DIFFUSION_BACKBONE),
     )
     .map_err(|e| ck(format!("not a width-{width} ResNet-18 encoder: {e}")))?;
-    let mut frozen = ResNet18::new(
-        width,
-        BackboneNorm::FrozenBatch,
-        BackboneNames::Torchvision,
-        VarBuilder::from_tensors(act.clone(), DType::F32, &dev),
-    )?;
+    let mut frozen = frozen_backbone(width, act.clone())?;
     let stats = frozen.calibrate_frozen_norms(calibration, GROUP, BackboneNames::Torchvision)?;
     for (module, s) in stats {
         act.insert(format!("{module}.running_mean"), s.mean);
@@ -248,15 +257,7 @@ mod tests {
                 *t = t.ones_like().expect("ones");
             }
         }
-        let net = |m: HashMap<String, Tensor>| {
-            ResNet18::new(
-                16,
-                BackboneNorm::FrozenBatch,
-                BackboneNames::Torchvision,
-                VarBuilder::from_tensors(m, DType::F32, &Device::Cpu),
-            )
-            .expect("net")
-        };
+        let net = |m: HashMap<String, Tensor>| frozen_backbone(16, m).expect("net");
         let x = frames(3, 4, 0.1);
         let a = net(ws.tensors).forward(&x, Products::PerSample).expect("a");
         let b = net(identity).forward(&x, Products::PerSample).expect("b");

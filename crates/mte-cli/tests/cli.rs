@@ -1185,4 +1185,23 @@ fn takeover_episodes_train_beside_demonstrations() {
     wide("narrow", &[])
         .failure()
         .stderr(predicate::str::contains("cond_encoder.1.weight"));
+
+    // `--config` sets the Diffusion Transformer's own fields (width, depth) on top of the
+    // transformer's preset, which used to overwrite them.
+    let dit = p("dit.json");
+    fs::write(
+        &dit,
+        r#"{"transformer": {"n_layer": 1, "n_head": 2, "n_emb": 8, "p_drop_emb": 0.0,
+            "p_drop_attn": 0.0, "causal_attn": true, "n_cond_layers": 0}}"#,
+    )
+    .unwrap();
+    train_with(&dit, "dit", &["demos"], &["--backbone", "transformer"]).success();
+    let config: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(p("dit/config.json")).unwrap()).unwrap();
+    assert_eq!(config["transformer"]["n_emb"], 8, "{config}");
+    assert_eq!(config["transformer"]["n_layer"], 1, "{config}");
+    assert_eq!(
+        config["horizon"], 16,
+        "the transformer preset's keypoint horizon"
+    );
 }

@@ -22,10 +22,13 @@ fn read_overrides(path: &std::path::Path) -> Result<serde_json::Value> {
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }
 
-/// The preset for `obs`, with the fields of the JSON file `overrides` replaced.
+/// The preset for `obs` (with the Diffusion Transformer's settings when `transformer`), then
+/// the fields of the JSON file `overrides` replaced, so that `--config` can set the
+/// transformer's width or depth as it sets any other field.
 fn preset_config(
     preset: PresetArg,
     obs: ObsKind,
+    transformer: bool,
     overrides: Option<&std::path::Path>,
 ) -> Result<DiffusionConfig> {
     let mut config = match preset {
@@ -38,6 +41,9 @@ fn preset_config(
             c
         }
     };
+    if transformer {
+        config = with_transformer(config, preset, obs)?;
+    }
     if let Some(path) = overrides {
         config = config.with_overrides(&read_overrides(path)?)?;
     }
@@ -82,10 +88,8 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         PolicyObsArg::Keypoints => ObsKind::Keypoints,
         PolicyObsArg::Image => ObsKind::Image,
     };
-    let mut config = preset_config(a.preset, obs, a.config.as_deref())?;
-    if a.backbone == crate::args::BackboneArg::Transformer {
-        config = with_transformer(config, a.preset, obs)?;
-    }
+    let transformer = a.backbone == crate::args::BackboneArg::Transformer;
+    let mut config = preset_config(a.preset, obs, transformer, a.config.as_deref())?;
     let first = a.data.first().context("--data: at least one dataset")?;
     fit_to_data(&mut config, first)?;
     let mut data = train_data::load_many(&a.data, &config, train_data::Extra::default())?;
@@ -213,7 +217,7 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
 
 /// `mte train encoder`
 pub fn encoder(cli: &Cli, a: &TrainEncoderArgs) -> Result<()> {
-    let mut config = preset_config(a.preset, ObsKind::Image, a.config.as_deref())?;
+    let mut config = preset_config(a.preset, ObsKind::Image, false, a.config.as_deref())?;
     fit_to_data(&mut config, &a.data)?;
     let data = train_data::load(&a.data, &config, train_data::Extra { keypoints: true })?;
     let pc = EncoderPretrainConfig {

@@ -342,7 +342,9 @@ pub struct TrainDiffusionArgs {
     /// Transformer: horizon 10 with images, 16 with keypoints; 2 observations, 8 executed).
     #[arg(long, value_enum, default_value_t = BackboneArg::Unet)]
     pub backbone: BackboneArg,
-    /// JSON file of config fields overriding the preset (LeRobot's config.json names).
+    /// JSON file of config fields overriding the preset (LeRobot's config.json names),
+    /// applied after `--backbone`'s settings: `{"transformer": {...}}` sets the Diffusion
+    /// Transformer's width and depth.
     #[arg(long, value_name = "FILE")]
     pub config: Option<PathBuf>,
     /// Optimiser steps.

@@ -70,6 +70,8 @@ const OPEN_LOOP: &str = "open-loop";
 
 /// Confidence level of the Wilson intervals.
 const CONFIDENCE: f64 = 0.95;
+/// How the report says that a cell has no episode yet (after "cell `id`" or "the cell").
+const NOT_RUN: &str = "has not run: no episode recorded";
 
 /// Which arms to compare and which cell to detail.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -966,7 +968,7 @@ fn main_rows(
         let ran = c.eps.iter().any(|v| !v.is_empty());
         if !ran {
             notes.push(format!(
-                "cell `{}` has not run: no episode recorded (a resumed sweep fills it)",
+                "cell `{}` {NOT_RUN} (a resumed sweep fills it)",
                 c.spec.id
             ));
         }
@@ -1292,7 +1294,7 @@ fn recovered(eps: RecoveryEpisodes<'_, '_>, denominator: Option<Denominator>) ->
         return undefined("no clean cell with the baseline arm for this policy and h");
     }
     if eps.base.is_empty() && eps.other.is_empty() {
-        return undefined("the cell has not run: no episode recorded");
+        return undefined(&format!("the cell {NOT_RUN}"));
     }
     if eps.base.is_empty() || eps.other.is_empty() {
         return undefined("no paired episodes: one arm has no episode recorded");
@@ -2402,7 +2404,7 @@ mod tests {
         assert!(q2.comparison.is_none());
         assert_eq!(
             q2.recovered.note.as_deref(),
-            Some("the cell has not run: no episode recorded")
+            Some(format!("the cell {NOT_RUN}").as_str())
         );
         assert!(
             row(&r, Q1).comparison.is_some(),

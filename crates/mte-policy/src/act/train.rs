@@ -7,7 +7,6 @@
 //! (AdamW's moments restart, as for Diffusion Policy).
 
 use std::cell::RefCell;
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor, Var};
@@ -350,7 +349,7 @@ fn warm_start_backbone(
     let (calibration, held_out) = (images(256)?, images(64)?);
     let width = policy.config().vision_backbone_width;
     let ws = super::warm_start::backbone_from_diffusion(path, width, &calibration, &held_out)?;
-    let set = set_variables(varmap, path, &ws.tensors, |name| {
+    let set = crate::checkpoint::set_variables(varmap, path, &ws.tensors, |name| {
         name.strip_prefix("backbone.").map(str::to_string)
     })?;
     if set != ws.tensors.len() {
@@ -430,42 +429,7 @@ fn resume(varmap: &VarMap, out: &Path) -> Result<usize, PolicyError> {
 /// `model.vae_encoder_pos_enc`) are ignored. Returns how many variables were set.
 pub fn load_weights(varmap: &VarMap, path: &Path) -> Result<usize, PolicyError> {
     let weights = candle_core::safetensors::load(path, &Device::Cpu)?;
-    set_variables(varmap, path, &weights, |name| Some(format!("model.{name}")))
-}
-
-/// Sets each variable of `varmap` whose name `key_of` maps to a key from `tensors[key]`
-/// (read from `path`, named in errors); a missing key or a different shape is an error
-/// naming it. Returns how many variables were set.
-fn set_variables(
-    varmap: &VarMap,
-    path: &Path,
-    tensors: &HashMap<String, Tensor>,
-    key_of: impl Fn(&str) -> Option<String>,
-) -> Result<usize, PolicyError> {
-    let vars = varmap
-        .data()
-        .lock()
-        .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?;
-    let mut set = 0;
-    for (name, var) in vars.iter() {
-        let Some(key) = key_of(name) else {
-            continue;
-        };
-        let t = tensors
-            .get(&key)
-            .ok_or_else(|| crate::checkpoint::ck(path, format!("missing {key}")))?;
-        if t.shape() != var.shape() {
-            let why = format!(
-                "{key} has shape {:?}, the policy expects {:?}",
-                t.dims(),
-                var.dims()
-            );
-            return Err(crate::checkpoint::ck(path, why));
-        }
-        var.set(t)?;
-        set += 1;
-    }
-    Ok(set)
+    crate::checkpoint::set_variables(varmap, path, &weights, |name| Some(format!("model.{name}")))
 }
 
 #[cfg(test)]
@@ -789,7 +753,7 @@ mod tests {
         let c = ActConfig { dim_model: 24, ..c };
         let _p = ActPolicy::new(c, policy.stats().clone(), vb).expect("policy");
         let e = load_weights(&wide, &path).expect_err("other width");
-        assert!(e.to_string().contains("the policy expects"), "{e}");
+        assert!(e.to_string().contains("expects"), "{e}");
     }
 
     /// Every parameter gets the gradient that finite differences of the training loss give

@@ -33,6 +33,47 @@ pub(crate) fn ck(path: &Path, reason: impl Into<String>) -> PolicyError {
     }
 }
 
+/// Sets each variable of `varmap` whose name `key_of` maps to a key from `tensors[key]`
+/// (read from `path`, named in errors); variables `key_of` maps to `None` are left as they
+/// are. A missing key or a different shape is an error naming the key, the variable and the
+/// shape the policy expects. Returns how many variables were set.
+pub(crate) fn set_variables(
+    varmap: &VarMap,
+    path: &Path,
+    tensors: &HashMap<String, Tensor>,
+    key_of: impl Fn(&str) -> Option<String>,
+) -> Result<usize, PolicyError> {
+    let vars = varmap
+        .data()
+        .lock()
+        .map_err(|_| crate::error::config_err("varmap", "poisoned", "unlocked"))?;
+    let mut set = 0;
+    for (name, var) in vars.iter() {
+        let Some(key) = key_of(name) else {
+            continue;
+        };
+        let t = tensors.get(&key).ok_or_else(|| {
+            let why = format!(
+                "no tensor `{key}`, expected one of shape {:?} for the policy's `{name}` ({} tensors in the file)",
+                var.dims(),
+                tensors.len()
+            );
+            ck(path, why)
+        })?;
+        if t.shape() != var.shape() {
+            let why = format!(
+                "`{key}` has shape {:?}, the policy's `{name}` expects {:?}",
+                t.dims(),
+                var.dims()
+            );
+            return Err(ck(path, why));
+        }
+        var.set(t)?;
+        set += 1;
+    }
+    Ok(set)
+}
+
 pub(crate) fn read_tensors(
     path: &Path,
     device: &Device,
@@ -238,4 +279,74 @@ pub(crate) fn save_stats(dir: &Path, stats: &StatsMap) -> Result<(), PolicyError
     candle_core::safetensors::save(&flat(&|_| true)?, dir.join(PRE_STATS))?;
     candle_core::safetensors::save(&flat(&|n| n == "action")?, dir.join(POST_STATS))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod set_variables_tests {
+    use super::*;
+    use candle_nn::Init;
+
+    fn varmap() -> VarMap {
+        let vm = VarMap::new();
+        for (name, shape) in [("a", (2, 3)), ("b", (4, 1))] {
+            vm.get(shape, name, Init::Const(0.0), DType::F32, &Device::Cpu)
+                .expect("var");
+        }
+        vm
+    }
+
+    fn tensors(entries: &[(&str, (usize, usize), f32)]) -> HashMap<String, Tensor> {
+        entries
+            .iter()
+            .map(|&(k, shape, v)| {
+                let t = (Tensor::ones(shape, DType::F32, &Device::Cpu).expect("t") * f64::from(v))
+                    .expect("scaled");
+                (k.to_string(), t)
+            })
+            .collect()
+    }
+
+    fn sum(vm: &VarMap, name: &str) -> f32 {
+        let vars = vm.data().lock().expect("lock");
+        vars[name]
+            .as_tensor()
+            .sum_all()
+            .and_then(|s| s.to_scalar())
+            .expect("sum")
+    }
+
+    /// Mapped names are set from their keys, unmapped ones are left alone and counted out.
+    #[test]
+    fn sets_mapped_variables_and_skips_the_rest() {
+        let vm = varmap();
+        let ts = tensors(&[("m.a", (2, 3), 2.0), ("m.b", (4, 1), 5.0)]);
+        let n = set_variables(&vm, Path::new("w.safetensors"), &ts, |n| {
+            (n == "a").then(|| format!("m.{n}"))
+        })
+        .expect("set");
+        assert_eq!(n, 1);
+        assert_eq!(sum(&vm, "a"), 12.0);
+        assert_eq!(sum(&vm, "b"), 0.0);
+    }
+
+    /// A missing key names the key, the variable and its shape; another shape names both.
+    #[test]
+    fn names_a_missing_key_and_a_wrong_shape() {
+        let vm = varmap();
+        let path = Path::new("w.safetensors");
+        let e = set_variables(&vm, path, &tensors(&[("a", (2, 3), 1.0)]), |n| {
+            Some(n.to_string())
+        })
+        .expect_err("b is missing");
+        let msg = e.to_string();
+        assert!(
+            msg.contains("no tensor `b`") && msg.contains("[4, 1]"),
+            "{msg}"
+        );
+        assert!(msg.contains("w.safetensors"), "{msg}");
+        let ts = tensors(&[("a", (3, 2), 1.0), ("b", (4, 1), 1.0)]);
+        let e = set_variables(&vm, path, &ts, |n| Some(n.to_string())).expect_err("shape");
+        let msg = e.to_string();
+        assert!(msg.contains("[3, 2]") && msg.contains("[2, 3]"), "{msg}");
+    }
 }

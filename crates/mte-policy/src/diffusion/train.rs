@@ -605,18 +605,7 @@ fn start_or_resume(
     })? as usize;
     let raw = out.join("raw_model.safetensors");
     let tensors = candle_core::safetensors::load(&raw, device)?;
-    for (name, var) in varmap
-        .data()
-        .lock()
-        .map_err(|_| config_err("varmap", "poisoned", "unlocked"))?
-        .iter()
-    {
-        let t = tensors.get(name).ok_or_else(|| PolicyError::Checkpoint {
-            path: raw.clone(),
-            reason: format!("missing {name}"),
-        })?;
-        var.set(t)?;
-    }
+    checkpoint::set_variables(varmap, &raw, &tensors, |name| Some(name.to_string()))?;
     let ema = match train.ema_max_decay {
         Some(_) => Some(candle_core::safetensors::load(
             out.join(checkpoint::WEIGHTS),

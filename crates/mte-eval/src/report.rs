@@ -2404,7 +2404,7 @@ mod tests {
         assert!(q2.comparison.is_none());
         assert_eq!(
             q2.recovered.note.as_deref(),
-            Some(format!("the cell {NOT_RUN}").as_str())
+            Some("the cell has not run: no episode recorded")
         );
         assert!(
             row(&r, Q1).comparison.is_some(),

@@ -753,7 +753,11 @@ mod tests {
         let c = ActConfig { dim_model: 24, ..c };
         let _p = ActPolicy::new(c, policy.stats().clone(), vb).expect("policy");
         let e = load_weights(&wide, &path).expect_err("other width");
-        assert!(e.to_string().contains("expects"), "{e}");
+        let msg = e.to_string();
+        assert!(
+            msg.contains("the policy's `") && msg.contains("expects"),
+            "{msg}"
+        );
     }
 
     /// Every parameter gets the gradient that finite differences of the training loss give

@@ -1,6 +1,8 @@
-"""Paired comparison of two cells of one run, arm by arm: mean max coverage of each, the
-paired difference (second - first) with its standard error, and the two-sided Wilcoxon
-signed-rank p-value (scipy's rules) over the seeds both cells ran.
+"""Paired comparison of two cells of one run, arm by arm, over the seeds both cells ran:
+mean max coverage of each, the paired difference (second - first) with its standard error and
+the two-sided Wilcoxon signed-rank p-value (scipy's rules); and the successes of each, the
+discordant pairs (success lost : success gained from the first cell to the second) and the
+two-sided exact McNemar p-value on them (binomial, p = 1/2, the same test as `mte report`).
 
     python tools/paired_cells.py RUN CELL_A CELL_B [CELL_C ...]   # every cell against CELL_A
 
@@ -12,35 +14,60 @@ Needs numpy and scipy (tools/reference/requirements-stats.txt).
 import json
 import pathlib
 import sys
+from math import comb
 
 import numpy as np
 from scipy import stats
 
 
 def load(run, cell):
+    """`{arm: {seed: (max_coverage, success)}}` of a cell's episode records."""
     if "::" in cell:
         run, cell = cell.split("::", 1)
     out = {}
     for line in (pathlib.Path(run) / "cells" / f"{cell}.jsonl").read_text().splitlines():
         r = json.loads(line)
         if r.get("kind") == "episode":
-            out.setdefault(r["arm"], {})[r["seed"]] = r["max_coverage"]
+            out.setdefault(r["arm"], {})[r["seed"]] = (r["max_coverage"], bool(r["success"]))
     return out
+
+
+def mcnemar_exact(lost, gained):
+    """Two-sided exact McNemar p-value of `lost : gained` discordant pairs (1.0 when none)."""
+    n = lost + gained
+    if n == 0:
+        return 1.0
+    tail = sum(comb(n, i) for i in range(min(lost, gained) + 1))
+    return min(1.0, 2 * tail / 2**n)
+
+
+def row(arm, cell, a, b):
+    seeds = sorted(set(a) & set(b))
+    x = np.array([a[s][0] for s in seeds])
+    y = np.array([b[s][0] for s in seeds])
+    d = y - x
+    p = stats.wilcoxon(y, x).pvalue if np.any(d != 0) else 1.0
+    se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
+    lost = sum(a[s][1] and not b[s][1] for s in seeds)
+    gained = sum(b[s][1] and not a[s][1] for s in seeds)
+    sa, sb = sum(a[s][1] for s in seeds), sum(b[s][1] for s in seeds)
+    return (
+        f"| `{arm}` | `{cell}` | {len(seeds)} | {x.mean():.3f} | {y.mean():.3f} | {d.mean():+.3f} ± {se:.3f} | {p:.2g} "
+        f"| {sa} → {sb} | {lost}:{gained} | {mcnemar_exact(lost, gained):.2g} |"
+    )
 
 
 def main(run, base, *others):
     a = load(run, base)
-    print(f"| arm | cell | n | {base} | cell | Δ ± paired SE | Wilcoxon p |\n|---|---|--:|--:|--:|--:|--:|")
+    print(
+        f"| arm | cell | n | {base} | cell | Δ ± paired SE | Wilcoxon p | successes | lost:gained | McNemar p |\n"
+        "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|"
+    )
     for cell in others:
         b = load(run, cell)
         for arm in sorted(a):
-            seeds = sorted(set(a[arm]) & set(b.get(arm, {})))
-            x = np.array([a[arm][s] for s in seeds])
-            y = np.array([b[arm][s] for s in seeds])
-            d = y - x
-            p = stats.wilcoxon(y, x).pvalue if np.any(d != 0) else 1.0
-            se = d.std(ddof=1) / np.sqrt(len(d))
-            print(f"| `{arm}` | `{cell}` | {len(seeds)} | {x.mean():.3f} | {y.mean():.3f} | {d.mean():+.3f} ± {se:.3f} | {p:.2g} |")
+            if arm in b:
+                print(row(arm, cell, a[arm], b[arm]))
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ def write_cell(run, cell, values):
     lines = []
     for arm, per_seed in values.items():
         for seed, cov in per_seed.items():
-            lines.append(json.dumps({"kind": "episode", "cell": cell, "arm": arm, "seed": seed, "max_coverage": cov}))
+            lines.append(json.dumps({"kind": "episode", "cell": cell, "arm": arm, "seed": seed, "max_coverage": cov, "success": cov > 0.95}))
     (run / "cells" / f"{cell}.jsonl").write_text("\n".join(lines) + "\n")
 
 
@@ -53,3 +53,26 @@ def test_a_cell_of_another_run_pairs_by_seed(tmp_path, capsys):
     row = [line for line in capsys.readouterr().out.splitlines() if "other`" in line][0]
     assert "| 6 |" in row, "only the seeds both cells ran"
     assert "+0.050" in row
+
+
+def test_exact_mcnemar_on_successes(tmp_path, capsys):
+    (tmp_path / "cells").mkdir()
+    seeds = range(12)
+    # Success lost on seeds 0-7, gained on seed 8, unchanged elsewhere: 8:1 discordant pairs.
+    a = {s: (1.0 if s < 8 or s == 10 else 0.2) for s in seeds}
+    b = {s: (1.0 if s in (8, 10) else 0.2) for s in seeds}
+    for name, values in (("base", a), ("other", b)):
+        lines = [
+            json.dumps({"kind": "episode", "arm": "median", "seed": s, "max_coverage": v, "success": v == 1.0})
+            for s, v in values.items()
+        ]
+        (tmp_path / "cells" / f"{name}.jsonl").write_text("\n".join(lines) + "\n")
+    tool = load_tool()
+    tool.main(str(tmp_path), "base", "other")
+    row = [line for line in capsys.readouterr().out.splitlines() if "`other`" in line][0]
+    p = stats.binomtest(1, 9, 0.5).pvalue  # the exact McNemar test is this binomial test
+    assert "| 9 → 2 | 8:1 |" in row
+    assert f"| {p:.2g} |" in row
+    assert tool.mcnemar_exact(0, 0) == 1.0
+    assert tool.mcnemar_exact(3, 3) == 1.0
+    assert abs(tool.mcnemar_exact(20, 0) - 2 * 0.5**20) < 1e-15

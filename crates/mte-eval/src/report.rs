@@ -8,7 +8,8 @@
 //!    test on coverage, exact McNemar test on success, Holm over the rows), next to the
 //!    baseline arm on the clean cell of the same policy and stride;
 //! 2. the **aggregator table** of one cell: every arm against the baseline (Holm over arms);
-//! 3. the **bracket table** by regime per arm, over the corrupted cells;
+//! 3. the **bracket table** by regime per arm, pooled over the corrupted cells and, where
+//!    there are several, per corrupted cell (the pool mixes corruptions of different strength);
 //! 4. the **recovered fraction** `(robust - baseline) / (clean - baseline)` per corrupted
 //!    cell ("n/a" where undefined);
 //! 5. the measured distributions of `M(tau)` and `q(tau)`;
@@ -532,6 +533,18 @@ pub struct ArmBrackets {
     pub rows: Vec<BracketRow>,
 }
 
+/// Bracket diagnostics of one corrupted cell, per arm: the pooled table of section 3 mixes
+/// corruptions of different strength, so each corrupted cell also gets its own.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CellBrackets {
+    /// Cell id.
+    pub cell: String,
+    /// The corruption's text form.
+    pub corruption: String,
+    /// One entry per arm with bracket data, in the run's arm order.
+    pub arms: Vec<ArmBrackets>,
+}
+
 /// Measured `M(tau)` and `q(tau)` counts of one arm.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Distribution {
@@ -595,6 +608,9 @@ pub struct Report {
     pub mcnemar: McNemarTest,
     /// Bracket tables, arms in run order (arms without bracket data left out).
     pub brackets: Vec<ArmBrackets>,
+    /// The same per corrupted cell, in run order; empty when the run has at most one
+    /// corrupted cell (the pooled table is then that cell's).
+    pub cell_brackets: Vec<CellBrackets>,
     /// `M`/`q` distributions of the ensemble arms.
     pub distributions: Vec<Distribution>,
     /// Stage times per arm.
@@ -803,6 +819,7 @@ pub fn build(
         distributions.extend(d);
         overhead.extend(arm_overhead(&cells, arm));
     }
+    let cell_brackets = cell_brackets(&cells, &corrupted, &all_arms);
     let controls = if opts.controls.is_empty() {
         None
     } else {
@@ -837,6 +854,7 @@ pub fn build(
         figure2,
         mcnemar: opts.mcnemar,
         brackets,
+        cell_brackets,
         distributions,
         overhead,
         failures,
@@ -1126,31 +1144,65 @@ fn arm_diagnostics(
     corrupted: &[usize],
     arm: &str,
 ) -> (Option<ArmBrackets>, Option<Distribution>) {
-    let mut acc = BracketAccumulator::default();
-    let mut with_bracket = 0;
     let (mut m, mut q) = (Vec::<u64>::new(), Vec::<u64>::new());
     for &ci in corrupted {
         for r in cells[ci].episodes(arm) {
-            if let Some(b) = &r.bracket {
-                acc.merge(b);
-                with_bracket += 1;
-            }
             add_counts(&mut m, &r.m_counts);
             add_counts(&mut q, &r.q_counts);
         }
     }
-    let brackets = (with_bracket > 0).then(|| ArmBrackets {
-        arm: arm.to_string(),
-        episodes: with_bracket,
-        rows: acc.rows(),
-    });
     let shown = arm != OPEN_LOOP && (m.iter().any(|&k| k > 0) || q.iter().any(|&k| k > 0));
     let distribution = shown.then(|| Distribution {
         arm: arm.to_string(),
         m,
         q,
     });
-    (brackets, distribution)
+    (arm_brackets(cells, corrupted, arm), distribution)
+}
+
+/// One arm's bracket accumulators merged over the episodes of `cells[i]` for `i` in `which`;
+/// `None` when none carried one.
+fn arm_brackets(cells: &[CellData<'_>], which: &[usize], arm: &str) -> Option<ArmBrackets> {
+    let mut acc = BracketAccumulator::default();
+    let mut episodes = 0;
+    for &ci in which {
+        for b in cells[ci]
+            .episodes(arm)
+            .iter()
+            .filter_map(|r| r.bracket.as_ref())
+        {
+            acc.merge(b);
+            episodes += 1;
+        }
+    }
+    (episodes > 0).then(|| ArmBrackets {
+        arm: arm.to_string(),
+        episodes,
+        rows: acc.rows(),
+    })
+}
+
+/// Section 3's per-cell tables: one per corrupted cell when there are several.
+fn cell_brackets(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    arms: &[String],
+) -> Vec<CellBrackets> {
+    if corrupted.len() < 2 {
+        return Vec::new();
+    }
+    corrupted
+        .iter()
+        .map(|&ci| CellBrackets {
+            cell: cells[ci].spec.id.clone(),
+            corruption: cells[ci].spec.corruption.to_string(),
+            arms: arms
+                .iter()
+                .filter_map(|a| arm_brackets(cells, &[ci], a))
+                .collect(),
+        })
+        .filter(|c| !c.arms.is_empty())
+        .collect()
 }
 
 /// Section 6 for one arm: where its episodes' time went, over every cell.
@@ -2563,6 +2615,26 @@ mod tests {
         assert_eq!(med.rows[1].steps, 15 * 2);
         let ewm = r.brackets.iter().find(|b| b.arm == EWM).unwrap();
         assert!((ewm.rows[1].outside_pct - 75.0).abs() < 1e-12);
+        // Per cell: the pooled table is the sum of the two corrupted cells' tables.
+        assert_eq!(r.cell_brackets.len(), 2);
+        assert_eq!(r.cell_brackets[0].cell, Q1);
+        let per_cell = |arm: &str, regime: usize| -> (usize, u64) {
+            r.cell_brackets.iter().fold((0, 0), |(e, s), c| {
+                let a = c.arms.iter().find(|a| a.arm == arm).unwrap();
+                (e + a.episodes, s + a.rows[regime].steps)
+            })
+        };
+        assert_eq!(per_cell(MEDIAN, 0), (15, 15 * 8));
+        assert_eq!(per_cell(EWM, 1), (ewm.episodes, ewm.rows[1].steps));
+        let q2_median = r.cell_brackets[1]
+            .arms
+            .iter()
+            .find(|a| a.arm == MEDIAN)
+            .unwrap();
+        assert_eq!(
+            q2_median.episodes, 7,
+            "one median episode of Q2 is an error record"
+        );
         let d = r.distributions.iter().find(|d| d.arm == EWM).unwrap();
         assert_eq!(d.m[7], 16 * 120);
         assert_eq!(d.q, vec![8 * 100 + 8 * 60, 8 * 50 + 8 * 50, 8 * 40]);

@@ -412,6 +412,48 @@ impl Report {
                 rows,
             ));
         }
+        self.cell_brackets(b);
+    }
+
+    /// Section 3, per corrupted cell (runs with several): the pooled table mixes corruptions
+    /// of different strength.
+    fn cell_brackets(&self, b: &mut Vec<Block>) {
+        if self.cell_brackets.is_empty() {
+            return;
+        }
+        b.push(Block::Para("The same per corrupted cell:".into()));
+        let mut rows = Vec::new();
+        for c in &self.cell_brackets {
+            for a in &c.arms {
+                for r in &a.rows {
+                    rows.push(vec![
+                        code(&c.cell),
+                        code(&a.arm),
+                        a.episodes.to_string(),
+                        code(&r.regime.to_string()),
+                        r.steps.to_string(),
+                        format!("{:.1}", r.outside_pct),
+                        f3(r.median_excess),
+                        f3(r.max_excess),
+                        format!("{:.1}", r.coincide_pct),
+                    ]);
+                }
+            }
+        }
+        b.push(table(
+            &[
+                "cell",
+                "arm",
+                "episodes",
+                "regime",
+                "steps",
+                "outside %",
+                "median excess",
+                "max excess",
+                "coincide %",
+            ],
+            rows,
+        ));
     }
 
     /// Section 4: the recovered fraction.

@@ -2645,6 +2645,47 @@ mod tests {
         assert!((per_step - 1e6 * runner / (23.0 * 150.0)).abs() < 1e-6);
     }
 
+    /// Section 3's per-cell bracket table is the pooled table with a cell column in front:
+    /// the same columns in the same order, every row as wide as its header, and one row per
+    /// arm and regime of each corrupted cell.
+    #[test]
+    fn per_cell_brackets_have_the_pooled_columns() {
+        let r = report();
+        let md = r.markdown();
+        let start = md.find("## 3.").unwrap();
+        let end = start + md[start..].find("## 4.").unwrap();
+        let cells = |l: &str| -> Vec<String> {
+            l.trim_matches('|')
+                .split(" | ")
+                .map(|c| c.trim().to_string())
+                .collect()
+        };
+        let tables: Vec<Vec<Vec<String>>> = md[start..end]
+            .split("\n\n")
+            .filter(|t| t.starts_with('|'))
+            .map(|t| {
+                t.lines()
+                    .filter(|l| !l.starts_with("|:") && !l.starts_with("|-"))
+                    .map(cells)
+                    .collect()
+            })
+            .collect();
+        assert_eq!(tables.len(), 2, "{}", &md[start..end]);
+        let (pooled, per_cell) = (&tables[0], &tables[1]);
+        assert_eq!(per_cell[0][0], "cell");
+        assert_eq!(per_cell[0][1..], pooled[0][..]);
+        for t in &tables {
+            assert!(t.iter().all(|row| row.len() == t[0].len()));
+        }
+        let regimes: usize = r
+            .cell_brackets
+            .iter()
+            .flat_map(|c| &c.arms)
+            .map(|a| a.rows.len().max(1))
+            .sum();
+        assert_eq!(per_cell.len() - 1, regimes);
+    }
+
     /// Bursts at another phase are their own curve: the same q at phase 0 and phase 3 gives
     /// two coverage and two success plots against q (each with one point per q) and two
     /// recovered-fraction plots, named and titled by phase.

@@ -349,6 +349,60 @@ fn arms_table(f: &FocusTable) -> Block {
     }
 }
 
+/// Columns of a bracket table row (section 3), after the optional cell column.
+const BRACKET_HEAD: [&str; 11] = [
+    "arm",
+    "episodes",
+    "regime",
+    "steps",
+    "outside %",
+    "median excess",
+    "max excess",
+    "zero-width outside",
+    "coincide %",
+    "nearest median",
+    "nearest p99",
+];
+
+/// One arm's rows of a bracket table, one per regime (a dash row when the arm never had a
+/// corrupted candidate), prefixed by the cell's id in the per-cell table.
+fn bracket_rows(cell: Option<&str>, a: &ArmBrackets) -> Vec<Vec<String>> {
+    let dash = || "—".to_string();
+    let opt = |v: Option<f64>| v.map_or_else(dash, f3);
+    let body = |r: Option<&BracketRow>| -> Vec<String> {
+        let Some(r) = r else {
+            let mut row = vec![dash(), "0".into()];
+            row.extend(std::iter::repeat_with(dash).take(7));
+            return row;
+        };
+        vec![
+            code(&r.regime.to_string()),
+            r.steps.to_string(),
+            format!("{:.1}", r.outside_pct),
+            f3(r.median_excess),
+            f3(r.max_excess),
+            r.zero_width_outside.to_string(),
+            format!("{:.1}", r.coincide_pct),
+            opt(r.nearest_median),
+            opt(r.nearest_p99),
+        ]
+    };
+    let regimes: Vec<Option<&BracketRow>> = if a.rows.is_empty() {
+        vec![None]
+    } else {
+        a.rows.iter().map(Some).collect()
+    };
+    regimes
+        .into_iter()
+        .map(|r| {
+            let mut row: Vec<String> = cell.map(code).into_iter().collect();
+            row.extend([code(&a.arm), a.episodes.to_string()]);
+            row.extend(body(r));
+            row
+        })
+        .collect()
+}
+
 impl Report {
     /// Section 3: bracket diagnostics by regime.
     fn bracket(&self, b: &mut Vec<Block>) {
@@ -358,59 +412,20 @@ impl Report {
              grouped by regime: share whose output left the clean bracket, excess beyond it in \
              bracket widths, steps with an excursion on a zero-width coordinate, share \
              coinciding with a candidate, and nearest-candidate distance over mean pairwise \
-             distance."
+             distance. Max excess is the largest over steps and has no bound where a \
+             coordinate's bracket is nearly zero wide; the median excess is the figure to \
+             compare."
                 .into(),
         ));
         if self.brackets.is_empty() {
             b.push(Block::Para("No bracket data.".into()));
         } else {
-            let mut rows = Vec::new();
-            for a in &self.brackets {
-                if a.rows.is_empty() {
-                    rows.push(vec![
-                        code(&a.arm),
-                        "—".into(),
-                        "0".into(),
-                        "—".into(),
-                        "—".into(),
-                        "—".into(),
-                        "—".into(),
-                        "—".into(),
-                        "—".into(),
-                        "—".into(),
-                    ]);
-                }
-                for r in &a.rows {
-                    let opt = |v: Option<f64>| v.map_or_else(|| "—".into(), f3);
-                    rows.push(vec![
-                        code(&a.arm),
-                        code(&r.regime.to_string()),
-                        r.steps.to_string(),
-                        format!("{:.1}", r.outside_pct),
-                        f3(r.median_excess),
-                        f3(r.max_excess),
-                        r.zero_width_outside.to_string(),
-                        format!("{:.1}", r.coincide_pct),
-                        opt(r.nearest_median),
-                        opt(r.nearest_p99),
-                    ]);
-                }
-            }
-            b.push(table(
-                &[
-                    "arm",
-                    "regime",
-                    "steps",
-                    "outside %",
-                    "median excess",
-                    "max excess",
-                    "zero-width outside",
-                    "coincide %",
-                    "nearest median",
-                    "nearest p99",
-                ],
-                rows,
-            ));
+            let rows = self
+                .brackets
+                .iter()
+                .flat_map(|a| bracket_rows(None, a))
+                .collect();
+            b.push(table(&BRACKET_HEAD, rows));
         }
         self.cell_brackets(b);
     }
@@ -422,38 +437,17 @@ impl Report {
             return;
         }
         b.push(Block::Para("The same per corrupted cell:".into()));
-        let mut rows = Vec::new();
-        for c in &self.cell_brackets {
-            for a in &c.arms {
-                for r in &a.rows {
-                    rows.push(vec![
-                        code(&c.cell),
-                        code(&a.arm),
-                        a.episodes.to_string(),
-                        code(&r.regime.to_string()),
-                        r.steps.to_string(),
-                        format!("{:.1}", r.outside_pct),
-                        f3(r.median_excess),
-                        f3(r.max_excess),
-                        format!("{:.1}", r.coincide_pct),
-                    ]);
-                }
-            }
-        }
-        b.push(table(
-            &[
-                "cell",
-                "arm",
-                "episodes",
-                "regime",
-                "steps",
-                "outside %",
-                "median excess",
-                "max excess",
-                "coincide %",
-            ],
-            rows,
-        ));
+        let rows = self
+            .cell_brackets
+            .iter()
+            .flat_map(|c| {
+                c.arms
+                    .iter()
+                    .flat_map(|a| bracket_rows(Some(c.cell.as_str()), a))
+            })
+            .collect();
+        let head: Vec<&str> = std::iter::once("cell").chain(BRACKET_HEAD).collect();
+        b.push(table(&head, rows));
     }
 
     /// Section 4: the recovered fraction.

@@ -389,6 +389,22 @@ pub struct Recovered {
     pub denominator: Option<Denominator>,
 }
 
+impl Recovered {
+    /// No fraction: every value `None`, with the reason (if any) and the denominator's test.
+    pub(crate) fn undefined(note: Option<String>, denominator: Option<Denominator>) -> Self {
+        Self {
+            coverage: None,
+            coverage_se: None,
+            seeds: 0,
+            success: None,
+            coverage_own: None,
+            coverage_own_se: None,
+            note,
+            denominator,
+        }
+    }
+}
+
 /// Significance level of the denominator test.
 pub const DENOMINATOR_ALPHA: f64 = 0.05;
 
@@ -1332,16 +1348,7 @@ fn same_seeds<'r, const N: usize>(lists: [&[&'r EpisodeRecord]; N]) -> Vec<[&'r 
 /// the seeds it ran); `None` with the reason where undefined, or where the denominator is
 /// not significantly above zero ("not meaningful").
 fn recovered(eps: RecoveryEpisodes<'_, '_>, denominator: Option<Denominator>) -> Recovered {
-    let undefined = |note: &str| Recovered {
-        coverage: None,
-        coverage_se: None,
-        seeds: 0,
-        success: None,
-        coverage_own: None,
-        coverage_own_se: None,
-        note: Some(note.into()),
-        denominator,
-    };
+    let undefined = |note: &str| Recovered::undefined(Some(note.into()), denominator);
     if eps.clean.is_empty() {
         return undefined("no clean cell with the baseline arm for this policy and h");
     }

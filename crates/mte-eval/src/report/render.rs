@@ -105,6 +105,26 @@ fn mcnemar_name(t: mte_stats::McNemarTest) -> &'static str {
     }
 }
 
+/// The main table's Holm sentence: it counts the rows each family of tests adjusts over,
+/// the rows that have that test, not every row (a cell with no records, or without both
+/// arms, has no test and is left out of the adjustment).
+fn holm_rows_sentence(rows: &[MainRow]) -> String {
+    let w = rows.iter().filter(|r| r.holm_wilcoxon.is_some()).count();
+    let m = rows.iter().filter(|r| r.holm_mcnemar.is_some()).count();
+    let of = |k: usize| {
+        if k == rows.len() {
+            format!("the {k} rows")
+        } else {
+            format!("the {k} of {} rows that have the test", rows.len())
+        }
+    };
+    if w == m {
+        format!("Holm over {} (each test separately).", of(w))
+    } else {
+        format!("Holm over {} (Wilcoxon) and {} (McNemar).", of(w), of(m))
+    }
+}
+
 /// A clean reference as `coverage (success%)`, or a dash.
 pub(super) fn clean_cell_text(k: Option<&CleanRef>) -> String {
     k.map_or_else(
@@ -194,10 +214,9 @@ impl Report {
              cell per seed and its two-sided paired Wilcoxon p. Δ = robust − baseline per seed, \
              ± paired standard error. \
              p (W): two-sided Wilcoxon signed-rank test on paired max coverage; p (McN): {} \
-             on paired success, b:c = baseline-only : robust-only successes. Holm over the {} \
-             rows.",
+             on paired success, b:c = baseline-only : robust-only successes. {}",
             mcnemar_name(self.mcnemar),
-            self.main.len()
+            holm_rows_sentence(&self.main)
         )));
         if self.main.is_empty() {
             b.push(Block::Para("No corrupted cell.".into()));
@@ -966,4 +985,47 @@ pub(super) fn partial_seeds(r: &Recovered, paired: usize) -> Option<String> {
             r.seeds
         )
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(w: Option<f64>, m: Option<f64>) -> MainRow {
+        MainRow {
+            cell: "c".into(),
+            policy: "p".into(),
+            corruption: "blank".into(),
+            q: 2,
+            h: 2,
+            clean: None,
+            robust_clean: None,
+            clean_comparison: None,
+            comparison: None,
+            holm_wilcoxon: w,
+            holm_mcnemar: m,
+            recovered: Recovered::undefined(None, None),
+        }
+    }
+
+    #[test]
+    fn holm_sentence_counts_only_the_rows_with_a_test() {
+        let all = [row(Some(0.1), Some(0.2)), row(Some(0.3), Some(0.4))];
+        assert_eq!(
+            holm_rows_sentence(&all),
+            "Holm over the 2 rows (each test separately)."
+        );
+        let some = [
+            row(Some(0.1), Some(0.2)),
+            row(None, None),
+            row(Some(0.3), None),
+            row(None, None),
+            row(None, None),
+        ];
+        assert_eq!(
+            holm_rows_sentence(&some),
+            "Holm over the 2 of 5 rows that have the test (Wilcoxon) and the 1 of 5 rows that \
+             have the test (McNemar)."
+        );
+    }
 }

@@ -46,6 +46,7 @@ fn observation(d: &Bound<'_, PyDict>) -> PyResult<Observation> {
         state,
         env_state: vector(d, "env_state")?,
         image,
+        wrist_image: None,
     })
 }
 

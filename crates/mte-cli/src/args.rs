@@ -436,7 +436,7 @@ pub struct DataTakeoverArgs {
     #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
     pub stream: StreamArg,
     /// Observations to record besides the agent position: comma-separated subset of
-    /// state, keypoints, pixels.
+    /// state, keypoints, pixels, wrist (the wrist camera: robomimic targets only).
     #[arg(long, default_value = "state,keypoints")]
     pub obs: mte_data::ObsSet,
     /// Side of recorded frames (px).
@@ -570,8 +570,10 @@ pub struct DataGenerateArgs {
     /// Where the demonstrations come from: `pusht` (the native simulator and its scripted
     /// expert), or a bridge target with a scripted expert, `robomimic:lift|can|square`
     /// (recorded: the 9-D proprioception, the task's object-state, 7-D OSC_POSE actions,
-    /// with `--obs pixels` the 84 x 84 agentview frame; give `--image-size 84` and
-    /// `--max-steps 400`; only successful episodes are kept unless `--keep-failures`).
+    /// with `--obs pixels` the 84 x 84 agentview frame as `observation.image`, with
+    /// `--obs pixels,wrist` the eye-in-hand camera's too as `observation.images.wrist`; give
+    /// `--image-size 84` and `--max-steps 400`; only successful episodes are kept unless
+    /// `--keep-failures`).
     #[arg(long, default_value = "pusht")]
     pub env: mte_eval::environment::EnvTarget,
     /// Bridge targets: keep failed expert episodes too.

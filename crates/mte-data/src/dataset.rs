@@ -22,6 +22,9 @@ pub mod names {
     pub const PUSHT_STATE: &str = "observation.pusht_state";
     /// Camera frame (H, W, 3) u8: LeRobot's `observation.image`.
     pub const IMAGE: &str = "observation.image";
+    /// The wrist camera's frame (H, W, 3) u8, in LeRobot's `observation.images.<camera>`
+    /// form (robomimic: `robot0_eye_in_hand_image`).
+    pub const WRIST_IMAGE: &str = "observation.images.wrist";
     /// Agent target (2, px).
     pub const ACTION: &str = "action";
     /// Episode of each frame.
@@ -113,6 +116,8 @@ pub struct Frame {
     pub pusht_state: Option<[f32; 5]>,
     /// Image, HWC u8.
     pub image: Option<Vec<u8>>,
+    /// The wrist camera's image, HWC u8.
+    pub wrist_image: Option<Vec<u8>>,
     /// Action (PushT: agent target, px).
     pub action: Vec<f32>,
     /// Reward after the action.
@@ -135,6 +140,8 @@ pub struct Layout {
     pub pusht_state: bool,
     /// `observation.image` (height, width), if stored.
     pub image_hw: Option<(usize, usize)>,
+    /// `observation.images.wrist` (height, width), if stored.
+    pub wrist_hw: Option<(usize, usize)>,
     /// `action`: length and description.
     pub action: (usize, String),
     /// What `next.reward` is.
@@ -155,6 +162,7 @@ impl Layout {
             env_state: with_env_state.then(|| (16, "8 block vertices, bar then stem (px)".into())),
             pusht_state: with_pusht_state,
             image_hw,
+            wrist_hw: None,
             action: (2, "agent target [x, y] (px)".into()),
             reward: "clip(coverage / 0.95, 0, 1) after the action".into(),
             success: "coverage > 0.95 after the action".into(),
@@ -235,6 +243,10 @@ impl DatasetWriter {
         if let Some((h, wd)) = layout.image_hw {
             w.column(IMAGE, DType::U8, &[h, wd, 3], true, "RGB frame, HWC u8")?;
         }
+        if let Some((h, wd)) = layout.wrist_hw {
+            let d = "RGB frame of the wrist camera, HWC u8";
+            w.column(WRIST_IMAGE, DType::U8, &[h, wd, 3], true, d)?;
+        }
         w.column(
             ACTION,
             DType::F32,
@@ -279,7 +291,8 @@ impl DatasetWriter {
     ) -> Result<(), DataError> {
         let file = format!("{name}.npy");
         let writer = NpyWriter::create(&self.dir.join("data").join(&file), dtype, shape)?;
-        let dim = if name == names::IMAGE {
+        // Frames get per-channel statistics.
+        let dim = if dtype == DType::U8 {
             3
         } else {
             shape.iter().product::<usize>().max(1)
@@ -316,6 +329,7 @@ impl DatasetWriter {
                 || f.env_state.as_ref().map(Vec::len) != l.env_state.as_ref().map(|e| e.0)
                 || f.pusht_state.is_some() != l.pusht_state
                 || f.image.as_ref().map(Vec::len) != l.image_hw.map(|(h, w)| h * w * 3)
+                || f.wrist_image.as_ref().map(Vec::len) != l.wrist_hw.map(|(h, w)| h * w * 3)
             {
                 return Err(DataError::Format {
                     path: self.dir.clone(),
@@ -334,13 +348,8 @@ impl DatasetWriter {
                     PUSHT_STATE => {
                         put_f32(col, f.pusht_state.as_ref().map_or(&[][..], |v| &v[..]))?
                     }
-                    IMAGE => {
-                        let img = f.image.as_deref().unwrap_or(&[]);
-                        col.writer.append_u8(img)?;
-                        if let Some(s) = &mut col.stats {
-                            s.push_image(img);
-                        }
-                    }
+                    IMAGE => put_frame(col, f.image.as_deref())?,
+                    WRIST_IMAGE => put_frame(col, f.wrist_image.as_deref())?,
                     ACTION => put_f32(col, &f.action)?,
                     EPISODE_INDEX => col.writer.append_i64(&[index as i64])?,
                     FRAME_INDEX => col.writer.append_i64(&[t as i64])?,
@@ -401,6 +410,15 @@ impl DatasetWriter {
     }
 }
 
+fn put_frame(col: &mut Column, img: Option<&[u8]>) -> Result<(), DataError> {
+    let img = img.unwrap_or(&[]);
+    col.writer.append_u8(img)?;
+    if let Some(s) = &mut col.stats {
+        s.push_image(img);
+    }
+    Ok(())
+}
+
 fn put_f32(col: &mut Column, v: &[f32]) -> Result<(), DataError> {
     col.writer.append_f32(v)?;
     if let Some(s) = &mut col.stats {
@@ -437,8 +455,11 @@ pub struct Dataset {
     pub stats: BTreeMap<String, FeatureStats>,
     /// Float features by name, frames x row length, row-major.
     pub floats: BTreeMap<String, Vec<f32>>,
-    /// Images (frames x H x W x 3), if stored.
+    /// `observation.image` (frames x H x W x 3), if stored.
     pub images: Option<Vec<u8>>,
+    /// Every other camera's frames by feature name (frames x H x W x 3; the wrist camera
+    /// as [`names::WRIST_IMAGE`]).
+    pub other_images: BTreeMap<String, Vec<u8>>,
 }
 
 impl Dataset {
@@ -460,6 +481,7 @@ impl Dataset {
             .collect::<Result<Vec<EpisodeMeta>, _>>()?;
         let mut floats = BTreeMap::new();
         let mut images = None;
+        let mut other_images = BTreeMap::new();
         for (name, f) in &info.features {
             let path = dir.join("data").join(&f.file);
             let a = NpyArray::read(&path)?;
@@ -476,7 +498,10 @@ impl Dataset {
                 DType::F32 => {
                     floats.insert(name.clone(), a.to_f32()?);
                 }
-                DType::U8 => images = Some(a.into_u8()?),
+                DType::U8 if name == names::IMAGE => images = Some(a.into_u8()?),
+                DType::U8 => {
+                    other_images.insert(name.clone(), a.into_u8()?);
+                }
                 DType::I64 => {
                     floats.insert(
                         name.clone(),
@@ -500,6 +525,7 @@ impl Dataset {
             stats,
             floats,
             images,
+            other_images,
         })
     }
 
@@ -554,6 +580,9 @@ impl Dataset {
         }
         if let (Some(a), Some(b)) = (&mut self.images, part.images) {
             a.extend(b);
+        }
+        for (name, frames) in part.other_images {
+            self.other_images.entry(name).or_default().extend(frames);
         }
         for (name, s) in &part.stats {
             let pooled = match self.stats.get(name) {

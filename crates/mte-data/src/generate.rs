@@ -27,11 +27,15 @@ pub struct ObsSet {
     pub keypoints: bool,
     /// Rendered frames.
     pub pixels: bool,
+    /// The wrist camera's frames too, at the frames' size (robomimic's
+    /// `robot0_eye_in_hand_image`; PushT has no wrist camera).
+    #[serde(default)]
+    pub wrist: bool,
 }
 
 impl FromStr for ObsSet {
     type Err = DataError;
-    /// Comma-separated subset of `state`, `keypoints`, `pixels`.
+    /// Comma-separated subset of `state`, `keypoints`, `pixels`, `wrist`.
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         let mut o = ObsSet::default();
         for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
@@ -39,11 +43,12 @@ impl FromStr for ObsSet {
                 "state" => o.state = true,
                 "keypoints" => o.keypoints = true,
                 "pixels" => o.pixels = true,
+                "wrist" => o.wrist = true,
                 other => {
                     return Err(DataError::Config {
                         field: "obs",
                         value: other.to_string(),
-                        expected: "a comma-separated subset of state, keypoints, pixels",
+                        expected: "a comma-separated subset of state, keypoints, pixels, wrist",
                     });
                 }
             }
@@ -81,6 +86,7 @@ impl Default for GenerateConfig {
                 state: true,
                 keypoints: true,
                 pixels: false,
+                wrist: false,
             },
             image_size: (96, 96),
             max_steps: mte_sim::geometry::MAX_EPISODE_STEPS,
@@ -116,6 +122,13 @@ impl GenerateConfig {
                 field: "max_steps",
                 value: "0".into(),
                 expected: "at least 1",
+            });
+        }
+        if self.obs.wrist {
+            return Err(DataError::Config {
+                field: "obs",
+                value: "wrist".into(),
+                expected: "PushT's observations (it has no wrist camera; robomimic targets do)",
             });
         }
         let (w, h) = self.image_size;
@@ -207,6 +220,7 @@ pub fn record_expert<R: rand::Rng>(
                 .then(|| kp.iter().map(|&v| v as f32).collect()),
             pusht_state: config.obs.state.then(|| s.map(|v| v as f32)),
             image,
+            wrist_image: None,
             action: vec![action[0] as f32, action[1] as f32],
             reward: info.reward as f32,
             done,

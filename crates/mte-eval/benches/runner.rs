@@ -31,6 +31,7 @@ impl ChunkPolicy for Fixed {
         ObsNeeds {
             env_state: true,
             image: None,
+            wrist_image: false,
         }
     }
     fn n_obs_steps(&self) -> usize {
@@ -62,6 +63,7 @@ fn episode_300_steps(bencher: divan::Bencher, arm: &str) {
         needs: ObsNeeds {
             env_state: true,
             image: None,
+            wrist_image: false,
         },
         seed: 100_000,
         stream: ResetStream::Legacy,

@@ -833,6 +833,7 @@ mod tests {
             state: vec![1.0, 2.0],
             env_state: Some(vec![kp; 16]),
             image: Some(vec![v; 8 * 8 * 3]),
+            wrist_image: None,
         }
     }
 

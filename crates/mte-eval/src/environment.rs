@@ -38,6 +38,14 @@ pub enum EnvError {
     /// The environment was used before its first reset.
     #[error("the environment was stepped or observed before reset")]
     NotReset,
+    /// The policy reads an observation this environment does not have.
+    #[error("{environment} has no {observation}: the policy reads it")]
+    Unsupported {
+        /// The environment.
+        environment: String,
+        /// The observation asked for.
+        observation: &'static str,
+    },
 }
 
 /// The outcome of one control step.
@@ -173,6 +181,12 @@ impl Environment for PushTEnv {
         if !self.reset {
             return Err(EnvError::NotReset);
         }
+        if needs.wrist_image {
+            return Err(EnvError::Unsupported {
+                environment: "PushT".into(),
+                observation: "wrist camera",
+            });
+        }
         let a = self.env.agent_pos();
         let image = match needs.image {
             Some((w, h)) => {
@@ -196,6 +210,7 @@ impl Environment for PushTEnv {
                 .env_state
                 .then(|| self.env.keypoints().iter().map(|&v| v as f32).collect()),
             image,
+            wrist_image: None,
         })
     }
 
@@ -245,6 +260,7 @@ mod tests {
         let needs = ObsNeeds {
             env_state: true,
             image: Some((96, 96)),
+            wrist_image: false,
         };
         assert!(matches!(env.observe(needs), Err(EnvError::NotReset)));
         let score = env.reset(100_000).expect("reset");
@@ -261,6 +277,13 @@ mod tests {
             assert_eq!((out.score, out.success), (info.coverage, info.is_success));
         }
         assert_eq!(env.sim().agent_pos(), sim.agent_pos());
+        let wrist = ObsNeeds {
+            wrist_image: true,
+            ..needs
+        };
+        let e = env.observe(wrist).expect_err("no wrist camera");
+        assert!(matches!(e, EnvError::Unsupported { .. }), "{e}");
+        assert!(e.to_string().contains("wrist camera"), "{e}");
         let e = env.step(&[1.0, 2.0, 3.0]).expect_err("three values");
         assert!(e.to_string().contains("expected 2"), "{e}");
         let e = env.step(&[f32::NAN, 0.0]).expect_err("NaN");

@@ -254,6 +254,7 @@ impl ChunkPolicy for PushTExpertPolicy {
         ObsNeeds {
             env_state: true,
             image: None,
+            wrist_image: false,
         }
     }
 
@@ -300,6 +301,7 @@ mod tests {
             state: vec![a[0] as f32, a[1] as f32],
             env_state: Some(env.keypoints().iter().map(|&v| v as f32).collect()),
             image: None,
+            wrist_image: None,
         }
     }
 

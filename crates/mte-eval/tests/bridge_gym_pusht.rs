@@ -55,6 +55,7 @@ fn native_pusht_and_gym_pusht_through_the_bridge_agree() {
     let needs = ObsNeeds {
         env_state: true,
         image: None,
+        wrist_image: false,
     };
     let mut theirs = gym(needs);
     let mut ours = PushTEnv::new(ResetStream::Pcg64);
@@ -128,6 +129,7 @@ fn gym_pusht_frames_through_the_bridge_equal_the_native_renderer_at_reset() {
     let needs = ObsNeeds {
         env_state: false,
         image: Some((96, 96)),
+        wrist_image: false,
     };
     let mut theirs = gym(needs);
     let mut ours = PushTEnv::new(ResetStream::Pcg64);

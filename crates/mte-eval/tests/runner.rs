@@ -79,6 +79,7 @@ impl ChunkPolicy for Scripted {
 const NEEDS: ObsNeeds = ObsNeeds {
     env_state: true,
     image: None,
+    wrist_image: false,
 };
 
 fn spec<'a>(execution: Execution, corruption: &'a CorruptionSpec, h: usize) -> EpisodeSpec<'a> {
@@ -990,6 +991,7 @@ impl ChunkPolicy for TowardsGoal {
         ObsNeeds {
             env_state: false,
             image: None,
+            wrist_image: false,
         }
     }
     fn n_obs_steps(&self) -> usize {

@@ -23,6 +23,7 @@ fn config() -> TakeoverConfig {
                 state: true,
                 keypoints: true,
                 pixels: true,
+                wrist: false,
             },
             image_size: (16, 16),
             max_steps: 50,

@@ -18,6 +18,7 @@ fn sized(pixels: bool, keypoints: bool, image_size: (usize, usize)) -> tempfile:
             state: true,
             keypoints,
             pixels,
+            wrist: false,
         },
         image_size,
         max_steps: 10,

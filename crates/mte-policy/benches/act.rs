@@ -54,6 +54,7 @@ fn chunk(bencher: divan::Bencher, preset: &str) {
         state: vec![200.0, 300.0],
         env_state: Some((0..16).map(|k| 200.0 + k as f32).collect()),
         image: None,
+        wrist_image: None,
     };
     bencher.bench_local(|| p.predict(&obs).expect("chunk"));
 }

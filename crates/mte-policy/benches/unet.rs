@@ -237,6 +237,7 @@ fn history(preset: &str) -> Vec<Observation> {
         state: vec![200.0, 300.0],
         env_state: (preset == "cpu-keypoints").then(|| vec![250.0; 16]),
         image: (preset != "cpu-keypoints").then(|| vec![128u8; 96 * 96 * 3]),
+        wrist_image: None,
     };
     vec![obs.clone(), obs]
 }

@@ -31,8 +31,12 @@ pub struct Observation {
     pub state: Vec<f32>,
     /// Environment state (PushT: 16 keypoint coordinates, px), if the policy uses it.
     pub env_state: Option<Vec<f32>>,
-    /// Camera frame, RGB u8 HWC, if the policy uses images.
+    /// Camera frame, RGB u8 HWC, if the policy uses images (PushT: the top view; robomimic:
+    /// `agentview_image`, flipped upright as robomimic does).
     pub image: Option<Vec<u8>>,
+    /// The wrist camera's frame, RGB u8 HWC at `image`'s size, if the policy uses it
+    /// (robomimic: `robot0_eye_in_hand_image`, flipped upright; PushT has no wrist camera).
+    pub wrist_image: Option<Vec<u8>>,
 }
 
 /// Which observations a policy reads (the robot state always).
@@ -42,6 +46,8 @@ pub struct ObsNeeds {
     pub env_state: bool,
     /// Rendered frames of this (width, height), px.
     pub image: Option<(usize, usize)>,
+    /// The wrist camera's frames too, at `image`'s size (so it needs `image`).
+    pub wrist_image: bool,
 }
 
 /// A chunked policy as a runner sees it: a history of `n_obs_steps` observations in, one

@@ -95,6 +95,7 @@ fn trains_checkpoints_loads_and_resumes() {
         state: vec![100.0, 400.0],
         env_state: Some((0..16).map(|k| 100.0 + k as f32).collect()),
         image: None,
+        wrist_image: None,
     };
     let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
     let chunk = policy
@@ -115,6 +116,7 @@ fn trains_checkpoints_loads_and_resumes() {
         state: vec![300.0, 120.0],
         env_state: Some((0..16).map(|k| 310.0 - k as f32).collect()),
         image: None,
+        wrist_image: None,
     };
     let (h1, h2) = (std::slice::from_ref(&obs), std::slice::from_ref(&other));
     let (mut r1, mut r2) = (seeded_rng(1), seeded_rng(2));

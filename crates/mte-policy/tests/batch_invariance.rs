@@ -64,6 +64,7 @@ fn history(image: bool, seed: u64) -> Vec<Observation> {
             state: vec![r.random_range(50.0..450.0), r.random_range(50.0..450.0)],
             env_state: (!image).then(|| (0..16).map(|_| r.random_range(50.0..450.0)).collect()),
             image: image.then(|| (0..96 * 96 * 3).map(|_| r.random::<u8>()).collect()),
+            wrist_image: None,
         })
         .collect()
 }

@@ -49,6 +49,7 @@ fn history(image: bool, keypoints: bool) -> Vec<Observation> {
                     .map(|i| ((i * 37 + t * 11) % 251) as u8)
                     .collect()
             }),
+            wrist_image: None,
         })
         .collect()
 }

@@ -46,6 +46,7 @@ fn raw_history(r: &Value) -> Vec<Observation> {
             state: floats(&g["observation.state"][k]),
             env_state: Some(floats(&g["observation.environment_state"][k])),
             image: None,
+            wrist_image: None,
         })
         .collect()
 }

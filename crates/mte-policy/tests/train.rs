@@ -109,6 +109,7 @@ fn training_is_deterministic_loads_and_resumes() {
         state: vec![150.0, 200.0],
         env_state: Some(vec![150.0; 16]),
         image: None,
+        wrist_image: None,
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
     let chunk = p.predict_chunk(&[o.clone(), o], &mut rng).expect("predict");

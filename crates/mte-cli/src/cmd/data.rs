@@ -90,6 +90,7 @@ fn generate_bridged(
         first_seed: a.seed,
         max_steps: a.max_steps,
         image: a.obs.pixels.then_some((a.image_size, a.image_size)),
+        wrist_image: a.obs.wrist,
         successes_only: !a.keep_failures,
         workers: a
             .threads

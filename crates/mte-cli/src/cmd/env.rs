@@ -15,6 +15,7 @@ use crate::progress::Bar;
 const STATE: ObsNeeds = ObsNeeds {
     env_state: false,
     image: None,
+    wrist_image: false,
 };
 
 /// `mte env expert`
@@ -75,6 +76,7 @@ pub fn bench(cli: &Cli, a: &EnvBenchArgs) -> Result<()> {
     let needs = ObsNeeds {
         env_state: false,
         image: a.image,
+        wrist_image: false,
     };
     let mut env = BridgeEnv::spawn(&a.env, needs, &BridgeOptions::default())
         .with_context(|| format!("starting {}", a.env))?;

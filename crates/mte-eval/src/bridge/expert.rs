@@ -72,6 +72,9 @@ pub struct DemoConfig {
     pub max_steps: usize,
     /// Camera frames of this (width, height), if any.
     pub image: Option<(usize, usize)>,
+    /// The wrist camera's frames too (robomimic's `robot0_eye_in_hand_image`), at `image`'s
+    /// size; needs `image`.
+    pub wrist_image: bool,
     /// Only successful episodes are kept (robomimic's "ph" datasets hold successes only);
     /// seeds continue past `first_seed + episodes` until that many are kept, at most
     /// `4 x episodes` tried.
@@ -108,6 +111,7 @@ fn layout(
     target: &Target,
     first: &(Observation, Vec<f32>),
     image: Option<(usize, usize)>,
+    wrist_image: bool,
 ) -> Layout {
     let (o, a) = first;
     let (sd, ed, ad) = match target {
@@ -127,6 +131,7 @@ fn layout(
         env_state: Some((o.env_state.as_ref().map_or(0, Vec::len), ed.into())),
         pusht_state: false,
         image_hw: image.map(|(w, h)| (h, w)),
+        wrist_hw: image.filter(|_| wrist_image).map(|(w, h)| (h, w)),
         action: (a.len(), ad.into()),
         reward: "1 once the task is solved after the action, else 0".into(),
         success: "the task is solved after the action (robosuite: _check_success())".into(),
@@ -153,6 +158,7 @@ fn frames(ep: &ExpertEpisode) -> Vec<Frame> {
                 env_state: o.env_state.clone(),
                 pusht_state: None,
                 image: o.image.clone(),
+                wrist_image: o.wrist_image.clone(),
                 action: a.clone(),
                 reward: f32::from(u8::from(last && ep.success)),
                 done: last,
@@ -192,6 +198,7 @@ fn work(
     let needs = ObsNeeds {
         env_state: true,
         image: config.image,
+        wrist_image: config.wrist_image,
     };
     let mut env = match BridgeEnv::spawn(&config.target, needs, options) {
         Ok(e) => e,
@@ -246,7 +253,7 @@ impl Recorder<'_> {
                     let first = ep.frames.first().ok_or_else(|| {
                         config_err("max_steps", c.max_steps, "room for at least one step")
                     })?;
-                    let layout = layout(&c.target, first, c.image);
+                    let layout = layout(&c.target, first, c.image, c.wrist_image);
                     self.writer.insert(DatasetWriter::create_with(
                         self.out,
                         fps(&c.target),
@@ -305,6 +312,10 @@ pub fn generate(
         if v == 0 {
             return Err(config_err(field, 0, ">= 1"));
         }
+    }
+    if config.wrist_image && config.image.is_none() {
+        let expected = "an image size as well (the wrist camera is rendered at the image's size)";
+        return Err(config_err("wrist_image", true, expected));
     }
     let (next, stop) = (AtomicUsize::new(0), AtomicBool::new(false));
     let (tx, rx) = channel();

@@ -365,7 +365,11 @@ impl BridgeEnv {
         let hello = json!({
             "op": "hello",
             "target": target.to_string(),
-            "needs": {"env_state": needs.env_state, "image": needs.image.map(|(w, h)| [w, h])},
+            "needs": {
+                "env_state": needs.env_state,
+                "image": needs.image.map(|(w, h)| [w, h]),
+                "wrist_image": needs.wrist_image,
+            },
         });
         let reply = env.request(Frame::new(hello), options.startup_timeout_s)?;
         let protocol = reply.header.get("protocol").and_then(Value::as_u64);
@@ -407,6 +411,29 @@ impl BridgeEnv {
             .lock()
             .map(|t| String::from_utf8_lossy(&t.0).into_owned())
             .unwrap_or_default()
+    }
+
+    /// The camera frame `name` of an `observe` reply, checked to be `[h, w, 3]` u8, when
+    /// `size` (width, height) asks for one.
+    fn frame_array(
+        &self,
+        reply: &Frame,
+        name: &str,
+        size: Option<(usize, usize)>,
+    ) -> Result<Option<Vec<u8>>, EnvError> {
+        let Some((w, h)) = size else {
+            return Ok(None);
+        };
+        let a = reply
+            .array(name)
+            .ok_or_else(|| self.protocol("observe", format!("no {name:?} array")))?;
+        match &a.data {
+            ArrayData::U8(px) if a.shape == [h, w, 3] => Ok(Some(px.clone())),
+            _ => Err(self.protocol(
+                "observe",
+                format!("{name} of shape {:?}: expected [{h}, {w}, 3] u8", a.shape),
+            )),
+        }
     }
 
     fn protocol(&self, op: &str, error: impl Into<String>) -> EnvError {
@@ -558,23 +585,15 @@ impl Environment for BridgeEnv {
         if needs.env_state && env_state.is_none() {
             return Err(self.protocol("observe", "no \"env_state\" array"));
         }
-        let image = match (needs.image, reply.array("image")) {
-            (None, _) => None,
-            (Some((w, h)), Some(a)) => match &a.data {
-                ArrayData::U8(px) if a.shape == [h, w, 3] => Some(px.clone()),
-                _ => {
-                    return Err(self.protocol(
-                        "observe",
-                        format!("image of shape {:?}: expected [{h}, {w}, 3] u8", a.shape),
-                    ));
-                }
-            },
-            (Some(_), None) => return Err(self.protocol("observe", "no \"image\" array")),
-        };
+        let image = self.frame_array(&reply, "image", needs.image)?;
+        // The worker refuses a wrist camera without `image` (and on targets without one).
+        let wrist = needs.image.filter(|_| needs.wrist_image);
+        let wrist_image = self.frame_array(&reply, "wrist_image", wrist)?;
         Ok(Observation {
             state,
             env_state: env_state.filter(|_| needs.env_state),
             image,
+            wrist_image,
         })
     }
 

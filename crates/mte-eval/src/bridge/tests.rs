@@ -13,6 +13,7 @@ use crate::pusht::{EpisodeSpec, Execution, RolloutError, run_episode_in};
 const STATE: ObsNeeds = ObsNeeds {
     env_state: false,
     image: None,
+    wrist_image: false,
 };
 
 fn toy(options: &str, needs: ObsNeeds, timeout_s: f64) -> Result<BridgeEnv, EnvError> {
@@ -101,6 +102,7 @@ fn the_toy_resets_observes_and_steps_through_the_worker() -> Result<(), EnvError
     let needs = ObsNeeds {
         env_state: true,
         image: Some((3, 2)),
+        wrist_image: false,
     };
     let mut env = toy("", needs, 30.0)?;
     assert_eq!(env.action_dim(), 1);
@@ -209,6 +211,55 @@ fn a_refused_request_carries_the_workers_message() {
     );
 }
 
+#[test]
+fn the_wrist_camera_comes_through_the_worker_or_is_refused() -> Result<(), EnvError> {
+    let needs = ObsNeeds {
+        env_state: false,
+        image: Some((3, 2)),
+        wrist_image: true,
+    };
+    let mut env = toy("", needs, 30.0)?;
+    env.reset(3)?;
+    let o = env.observe(needs)?;
+    let level = (255.0 * (3.0f64 / 7.0)) as u8;
+    assert_eq!(o.image, Some(vec![level; 2 * 3 * 3]));
+    assert_eq!(o.wrist_image, Some(vec![255 - level; 2 * 3 * 3]));
+    // Without the wrist camera, the reply carries none.
+    let mut env = toy(
+        "",
+        ObsNeeds {
+            wrist_image: false,
+            ..needs
+        },
+        30.0,
+    )?;
+    env.reset(3)?;
+    let o = env.observe(ObsNeeds {
+        wrist_image: false,
+        ..needs
+    })?;
+    assert_eq!(o.wrist_image, None);
+    // A wrist camera without frames to size it, or on a target without one: refused at hello.
+    let e = toy(
+        "",
+        ObsNeeds {
+            image: None,
+            ..needs
+        },
+        30.0,
+    )
+    .expect_err("no image size");
+    assert!(
+        matches!(e, EnvError::Bridge(BridgeError::Refused { .. })),
+        "{e}"
+    );
+    assert!(e.to_string().contains("ask for image too"), "{e}");
+    let gym: Target = "gym:gym_pusht/PushT-v0".parse().expect("target");
+    let e = BridgeEnv::spawn(&gym, needs, &BridgeOptions::default()).expect_err("gym");
+    assert!(e.to_string().contains("has no wrist camera"), "{e}");
+    Ok(())
+}
+
 /// Heads for 0.9 in every row of its chunk.
 struct GoToGoal;
 
@@ -290,6 +341,7 @@ fn expert_demonstrations_become_a_dataset_in_seed_order() {
         first_seed: 10,
         max_steps: 50,
         image: None,
+        wrist_image: false,
         successes_only: true,
         workers: 2,
     };
@@ -329,4 +381,42 @@ fn expert_demonstrations_become_a_dataset_in_seed_order() {
     )
     .expect_err("zero");
     assert!(e.to_string().contains("`episodes` = 0"), "{e}");
+}
+
+#[test]
+fn expert_demonstrations_record_the_wrist_camera_beside_the_frames() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let config = expert::DemoConfig {
+        target: "toy:".parse().expect("toy"),
+        episodes: 2,
+        first_seed: 3,
+        max_steps: 50,
+        image: Some((3, 2)),
+        wrist_image: true,
+        successes_only: false,
+        workers: 1,
+    };
+    let out = dir.path().join("demos");
+    expert::generate(&config, &out, &BridgeOptions::default(), &|_| {}).expect("generate");
+    let ds = mte_data::Dataset::load(&out).expect("load");
+    let wrist = mte_data::dataset::names::WRIST_IMAGE;
+    assert_eq!(ds.info.features[wrist].shape, vec![2, 3, 3]);
+    let frames: usize = ds.episodes.iter().map(|e| e.length).sum();
+    let (image, wrist_px) = (ds.images.expect("frames"), &ds.other_images[wrist]);
+    assert_eq!(wrist_px.len(), frames * 2 * 3 * 3);
+    // The toy's wrist camera is the negative of its frame, frame by frame.
+    assert!(image.iter().zip(wrist_px).all(|(a, b)| *a == 255 - *b));
+    assert!(ds.stats.contains_key(wrist), "per-channel statistics");
+    // The wrist camera without frames to size it is refused with the field named.
+    let e = expert::generate(
+        &expert::DemoConfig {
+            image: None,
+            ..config
+        },
+        &dir.path().join("x"),
+        &BridgeOptions::default(),
+        &|_| {},
+    )
+    .expect_err("no image");
+    assert!(e.to_string().contains("`wrist_image`"), "{e}");
 }

@@ -11,11 +11,13 @@ No pickle: any language can speak it.
 
 Requests (``"op"``) and their responses (``"ok": true`` plus):
 
-- ``hello`` ``{"target": str, "needs": {"env_state": bool, "image": [w, h] | null}}``:
-  ``{"protocol": 1, "action_dim": int}``. Builds the environment.
+- ``hello`` ``{"target": str, "needs": {"env_state": bool, "image": [w, h] | null,
+  "wrist_image": bool}}``: ``{"protocol": 1, "action_dim": int}``. Builds the environment;
+  a need the target cannot serve (a wrist camera on a target without one, or without
+  ``image``) is refused here.
 - ``reset`` ``{"seed": int}``: ``{"score": float}``.
 - ``observe``: arrays ``state`` (f32), ``env_state`` (f32, if needed), ``image`` (u8,
-  ``(h, w, 3)``, if needed).
+  ``(h, w, 3)``, if needed), ``wrist_image`` (u8, the same shape, if needed).
 - ``expert``: array ``action`` (f32), the task's scripted expert's action for the current
   state (from ground-truth poses; robomimic tasks and the toy).
 - ``step`` with array ``action`` (f32, ``action_dim``): ``{"score": float, "success": bool}``.
@@ -27,7 +29,8 @@ decides whether the episode fails); tracebacks go to stderr, which the runner ke
 Targets:
 
 - ``toy:<options>``: a 1-D point that moves halfway to the commanded position each step
-  (score ``1 - |x - goal|``), pure Python; options ``crash-at=N`` (exit 3 at step N) and
+  (score ``1 - |x - goal|``), pure Python; its frames are uniform at ``255 x``, its wrist
+  camera's at ``255 - 255 x``; options ``crash-at=N`` (exit 3 at step N) and
   ``hang-at=N`` (sleep at step N) exercise the runner's failure handling.
 - ``gym:<module>/<EnvId>[?key=value&...]``: ``gymnasium.make(EnvId, **kwargs)`` after
   ``import module`` (the id tried as ``<module>/<EnvId>`` first, the namespaced form
@@ -39,8 +42,11 @@ Targets:
 - ``robomimic:<lift|can|square>``: robosuite 1.5 as robomimic and Diffusion Policy
   configure it (Panda, OSC_POSE, 20 Hz, 400 steps). State: the 9-D proprioception
   (``robot0_eef_pos``, ``robot0_eef_quat``, ``robot0_gripper_qpos``); environment state: the
-  task's ``object-state``; image: ``agentview_image`` flipped vertically as robomimic does.
-  Score and success: ``env._check_success()``.
+  task's ``object-state``; image: ``agentview_image``, wrist image:
+  ``robot0_eye_in_hand_image``, each flipped vertically as robomimic does (only the cameras
+  asked for are rendered). Score and success: ``env._check_success()``.
+
+Gymnasium targets have no wrist camera and refuse ``wrist_image`` at ``hello``.
 """
 
 import json
@@ -139,6 +145,8 @@ class Toy:
     ``(seed % 7) / 7`` with the goal at 0.9."""
 
     def __init__(self, options, needs):
+        if needs.get("wrist_image") and not needs.get("image"):
+            raise WorkerError("the wrist camera is rendered at the image's size: ask for image too")
         self.crash_at = int(options.get("crash-at", -1))
         self.hang_at = int(options.get("hang-at", -1))
         self.needs = needs
@@ -161,6 +169,8 @@ class Toy:
             w, h = self.needs["image"]
             level = int(255 * min(1.0, max(0.0, self.x)))
             out["image"] = ("u8", [h, w, 3], bytes([level]) * (w * h * 3))
+            if self.needs.get("wrist_image"):
+                out["wrist_image"] = ("u8", [h, w, 3], bytes([255 - level]) * (w * h * 3))
         return out
 
     def expert_action(self):
@@ -268,6 +278,11 @@ class Robomimic:
         image = needs.get("image")
         if image and tuple(image) != (84, 84):
             raise WorkerError(f"robomimic images are 84 x 84; the policy asks for {image}")
+        if needs.get("wrist_image") and not image:
+            raise WorkerError("the wrist camera is rendered at the image's size: ask for image too")
+        # Only the cameras a policy observes are rendered (rendering is most of a step's time
+        # without a GPU; each camera adds about as much again).
+        cameras = ["agentview"] + (["robot0_eye_in_hand"] if needs.get("wrist_image") else [])
         self.kwargs = dict(
             env_name=ROBOMIMIC[task],
             robots="Panda",
@@ -275,10 +290,7 @@ class Robomimic:
             has_renderer=False,
             has_offscreen_renderer=bool(image),
             use_camera_obs=bool(image),
-            # Only the camera a policy observes is rendered: mte's image policies see one
-            # camera, agentview (rendering is most of a step's time without a GPU, and the
-            # eye-in-hand camera would double it).
-            camera_names=["agentview"],
+            camera_names=cameras,
             camera_heights=84,
             camera_widths=84,
             control_freq=20,
@@ -333,6 +345,8 @@ class Robomimic:
             out["env_state"] = _f32(np, o["object-state"])
         if self.needs.get("image"):
             out["image"] = _image(np, o["agentview_image"][::-1], (84, 84))
+        if self.needs.get("wrist_image"):
+            out["wrist_image"] = _image(np, o["robot0_eye_in_hand_image"][::-1], (84, 84))
         return out
 
     def step(self, action):
@@ -528,6 +542,8 @@ def _image(np, img, wh):
 
 def make(target, needs):
     kind, _, rest = target.partition(":")
+    if needs.get("wrist_image") and kind == "gym":
+        raise WorkerError(f"target {target!r} has no wrist camera; robomimic targets do")
     if kind == "toy":
         options = dict(o.partition("=")[::2] for o in filter(None, rest.split(",")))
         return Toy(options, needs)
@@ -563,7 +579,7 @@ def serve(inp, out):
                 write_frame(out, {"ok": True, "score": float(env.reset(header["seed"]))})
             elif op == "observe":
                 obs = env.observe()
-                write_frame(out, {"ok": True}, [(k, *obs[k]) for k in ("state", "env_state", "image") if k in obs])
+                write_frame(out, {"ok": True}, [(k, *obs[k]) for k in ("state", "env_state", "image", "wrist_image") if k in obs])
             elif op == "expert":
                 action = env.expert_action()
                 write_frame(out, {"ok": True}, [("action", "f32", [len(action)], to_bytes("f32", action))])

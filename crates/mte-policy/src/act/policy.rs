@@ -345,6 +345,7 @@ impl ChunkPolicy for ActPolicy {
         ObsNeeds {
             env_state: self.env_norm.is_some(),
             image: self.camera.as_ref().map(|c| (c.w, c.h)),
+            wrist_image: false,
         }
     }
     fn attackable(&self) -> Option<&dyn AttackablePolicy> {

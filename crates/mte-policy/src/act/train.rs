@@ -124,6 +124,7 @@ fn observations(
             image: (data.images.as_ref().zip(px))
                 .filter(|_| images)
                 .map(|(i, n)| i[f * n..(f + 1) * n].to_vec()),
+            wrist_image: None,
         })
         .collect();
     let refs: Vec<&crate::policy::Observation> = obs.iter().collect();
@@ -684,6 +685,7 @@ mod tests {
             state: vec![30.0, 370.0],
             env_state: None,
             image: Some(data.images.as_ref().expect("frames")[..32 * 32 * 3].to_vec()),
+            wrist_image: None,
         };
         let a = policy.predict(&obs).expect("predict");
         assert_eq!(a.len(), 4 * 2);

@@ -701,6 +701,7 @@ impl ChunkPolicy for DiffusionPolicy {
         ObsNeeds {
             env_state: self.config.vector_dim(FeatureType::Env).is_some(),
             image: self.config.image_shape().map(|[_, h, w]| (w, h)),
+            wrist_image: false,
         }
     }
     fn predict_chunk(

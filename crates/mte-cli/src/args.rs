@@ -436,7 +436,7 @@ pub struct DataTakeoverArgs {
     #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
     pub stream: StreamArg,
     /// Observations to record besides the agent position: comma-separated subset of
-    /// state, keypoints, pixels, wrist (the wrist camera: robomimic targets only).
+    /// state, keypoints, pixels.
     #[arg(long, default_value = "state,keypoints")]
     pub obs: mte_data::ObsSet,
     /// Side of recorded frames (px).
@@ -590,7 +590,7 @@ pub struct DataGenerateArgs {
     #[arg(long, value_enum, default_value_t = StreamArg::Legacy)]
     pub stream: StreamArg,
     /// Observations to record besides the agent position: comma-separated subset of
-    /// state, keypoints, pixels.
+    /// state, keypoints, pixels, wrist (the wrist camera: robomimic targets only).
     #[arg(long, default_value = "state,keypoints")]
     pub obs: mte_data::ObsSet,
     /// Side of recorded frames (px).

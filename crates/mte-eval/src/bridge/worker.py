@@ -145,8 +145,6 @@ class Toy:
     ``(seed % 7) / 7`` with the goal at 0.9."""
 
     def __init__(self, options, needs):
-        if needs.get("wrist_image") and not needs.get("image"):
-            raise WorkerError("the wrist camera is rendered at the image's size: ask for image too")
         self.crash_at = int(options.get("crash-at", -1))
         self.hang_at = int(options.get("hang-at", -1))
         self.needs = needs
@@ -278,8 +276,6 @@ class Robomimic:
         image = needs.get("image")
         if image and tuple(image) != (84, 84):
             raise WorkerError(f"robomimic images are 84 x 84; the policy asks for {image}")
-        if needs.get("wrist_image") and not image:
-            raise WorkerError("the wrist camera is rendered at the image's size: ask for image too")
         # Only the cameras a policy observes are rendered (rendering is most of a step's time
         # without a GPU; each camera adds about as much again).
         cameras = ["agentview"] + (["robot0_eye_in_hand"] if needs.get("wrist_image") else [])
@@ -542,6 +538,8 @@ def _image(np, img, wh):
 
 def make(target, needs):
     kind, _, rest = target.partition(":")
+    if needs.get("wrist_image") and not needs.get("image"):
+        raise WorkerError("the wrist camera is rendered at the image's size: ask for image too")
     if needs.get("wrist_image") and kind == "gym":
         raise WorkerError(f"target {target!r} has no wrist camera; robomimic targets do")
     if kind == "toy":

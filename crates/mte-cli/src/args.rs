@@ -342,6 +342,12 @@ pub struct TrainDiffusionArgs {
     /// Transformer: horizon 10 with images, 16 with keypoints; 2 observations, 8 executed).
     #[arg(long, value_enum, default_value_t = BackboneArg::Unet)]
     pub backbone: BackboneArg,
+    /// With `--obs image`: also the wrist camera (`observation.images.wrist`, from `mte
+    /// data generate --obs pixels,wrist`), its features beside the scene camera's in the
+    /// conditioning. One encoder serves both (LeRobot's default); `--config` with
+    /// `{"use_separate_rgb_encoder_per_camera": true}` gives each camera its own.
+    #[arg(long)]
+    pub wrist: bool,
     /// JSON file of config fields overriding the preset (LeRobot's config.json names),
     /// applied after `--backbone`'s settings: `{"transformer": {...}}` sets the Diffusion
     /// Transformer's width and depth.

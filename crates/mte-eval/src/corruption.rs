@@ -9,6 +9,11 @@
 //! Units: images are HWC `u8`; intensities in fault parameters are in `[0, 1]` (so
 //! `sigma = 0.1` is 25.5 grey levels); state coordinates are pixels of the 512 x 512
 //! workspace; sizes are pixels of the observation image.
+//!
+//! Cameras: a policy that also reads the wrist camera has it struck with the scene camera by
+//! the faults of the camera itself (blank, stale, frozen, motion blur, noise: the video
+//! pipeline fails for every camera); the faults that sit in the scene (occluder, patch) are
+//! drawn into the scene camera's frames only.
 
 use std::fmt;
 
@@ -672,7 +677,7 @@ impl ObservationCorruptor {
         match self.fault {
             SensorFault::Blank => {
                 for o in &mut win {
-                    if let Some(img) = o.image.as_mut() {
+                    for img in o.image.iter_mut().chain(o.wrist_image.iter_mut()) {
                         img.fill(0);
                     }
                     if let Some(kp) = o.env_state.as_mut() {
@@ -714,8 +719,10 @@ impl ObservationCorruptor {
             SensorFault::MotionBlur { length } => {
                 let angle = rng.random::<f64>() * std::f64::consts::TAU;
                 for (k, o) in win.iter_mut().enumerate() {
-                    if let (Some(img), Some((w, h))) = (o.image.as_mut(), image_size) {
-                        blur_image(img, w, h, length, angle);
+                    if let Some((w, h)) = image_size {
+                        for img in o.image.iter_mut().chain(o.wrist_image.iter_mut()) {
+                            blur_image(img, w, h, length, angle);
+                        }
                     }
                     if o.env_state.is_some() {
                         // Mean of the last `length` frames ending at this one.
@@ -738,10 +745,13 @@ impl ObservationCorruptor {
                 let img_noise = Normal::new(0.0, sigma * 255.0).ok();
                 let kp_noise = Normal::new(0.0, sigma).ok();
                 for o in &mut win {
-                    if let (Some(img), Some(nd)) = (o.image.as_mut(), img_noise) {
-                        for p in img.iter_mut() {
-                            let v = f64::from(*p) + nd.sample(rng);
-                            *p = v.round().clamp(0.0, 255.0) as u8;
+                    if let Some(nd) = img_noise {
+                        // The scene camera's pixels first, then the wrist camera's.
+                        for img in o.image.iter_mut().chain(o.wrist_image.iter_mut()) {
+                            for p in img.iter_mut() {
+                                let v = f64::from(*p) + nd.sample(rng);
+                                *p = v.round().clamp(0.0, 255.0) as u8;
+                            }
                         }
                     }
                     if let (Some(kp), Some(nd)) = (o.env_state.as_mut(), kp_noise) {
@@ -756,9 +766,10 @@ impl ObservationCorruptor {
     }
 }
 
-/// Copies the exteroceptive channels (image, keypoints) of `src` into `dst`.
+/// Copies the exteroceptive channels (cameras, keypoints) of `src` into `dst`.
 fn copy_extero(src: &Observation, dst: &mut Observation) {
     dst.image.clone_from(&src.image);
+    dst.wrist_image.clone_from(&src.wrist_image);
     dst.env_state.clone_from(&src.env_state);
 }
 
@@ -911,6 +922,50 @@ mod tests {
             w.iter().all(|o| o.image == frame(4, 0.0).image),
             "a new freeze"
         );
+    }
+
+    #[test]
+    fn camera_faults_strike_the_wrist_camera_and_scene_faults_do_not() {
+        let with_wrist = |v: u8, w: u8| Observation {
+            wrist_image: Some(vec![w; 8 * 8 * 3]),
+            ..frame(v, 1.0)
+        };
+        let frames = vec![with_wrist(10, 20), with_wrist(30, 40), with_wrist(50, 60)];
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let zeros = |img: &Option<Vec<u8>>| {
+            img.as_ref()
+                .map_or(0, |i| i.iter().filter(|&&p| p == 0).count())
+        };
+        let mut blank = ObservationCorruptor::new(SensorFault::Blank);
+        for o in blank.window(&frames, 2, true, Some((8, 8)), &mut rng) {
+            assert_eq!(zeros(&o.image), 8 * 8 * 3);
+            assert_eq!(zeros(&o.wrist_image), 8 * 8 * 3);
+        }
+        // Stale: the newest frame is the previous one, for both cameras alike.
+        let mut stale = ObservationCorruptor::new(SensorFault::Stale);
+        let w = stale.window(&frames, 2, true, Some((8, 8)), &mut rng);
+        assert_eq!(w[1].image, frames[1].image);
+        assert_eq!(w[1].wrist_image, frames[1].wrist_image);
+        let mut occ = ObservationCorruptor::new(SensorFault::Occluder { size: 3 });
+        for (o, f) in occ
+            .window(&frames, 2, true, Some((8, 8)), &mut rng)
+            .iter()
+            .zip(&frames[1..])
+        {
+            assert_eq!(zeros(&o.image), 3 * 3 * 3);
+            assert_eq!(
+                o.wrist_image, f.wrist_image,
+                "the occluder sits in the scene"
+            );
+        }
+        let mut noise = ObservationCorruptor::new(SensorFault::GaussianNoise { sigma: 0.2 });
+        for (o, f) in noise
+            .window(&frames, 2, true, Some((8, 8)), &mut rng)
+            .iter()
+            .zip(&frames[1..])
+        {
+            assert_ne!(o.wrist_image, f.wrist_image);
+        }
     }
 
     #[test]

@@ -148,6 +148,15 @@ pub fn from_dataset(
             ds.images.clone()
         }
     };
+    let wrist_images = match (images.is_some(), config.has_wrist_camera()) {
+        (true, true) => Some(ds.other_images.get(names::WRIST_IMAGE).cloned().ok_or(
+            TrainDataError::MissingFeature {
+                feature: names::WRIST_IMAGE,
+                hint: "--obs pixels,wrist",
+            },
+        )?),
+        _ => None,
+    };
     let stats = stats_from(ds.stats.iter().map(|(k, s)| {
         let (min, max) = (s.min.clone(), s.max.clone());
         (k.clone(), min, max, s.mean.clone(), s.std.clone())
@@ -156,6 +165,7 @@ pub fn from_dataset(
         state: need(names::STATE)?,
         env_state,
         images,
+        wrist_images,
         action: need(names::ACTION)?,
         episode_lengths: ds.episode_lengths(),
         episode_success: ds.episodes.iter().map(|e| e.success).collect(),

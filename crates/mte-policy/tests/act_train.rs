@@ -28,6 +28,7 @@ fn data() -> TrainData {
         state,
         env_state: Some(env),
         images: None,
+        wrist_images: None,
         action,
         episode_lengths: vec![40, 40],
         episode_success: vec![true, true],

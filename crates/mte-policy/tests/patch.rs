@@ -62,6 +62,7 @@ fn data() -> TrainData {
         state,
         env_state: None,
         images: Some(images),
+        wrist_images: None,
         action,
         episode_lengths: vec![24, 24],
         episode_success: vec![true, true],

@@ -64,6 +64,7 @@ fn data() -> TrainData {
         state,
         env_state: Some(env),
         images: Some(images),
+        wrist_images: None,
         action,
         episode_lengths: vec![30; 4],
         episode_success: vec![true; 4],

@@ -46,6 +46,7 @@ fn data() -> TrainData {
         state,
         env_state: Some(env),
         images: None,
+        wrist_images: None,
         action,
         episode_success: vec![true; lens.len()],
         episode_lengths: lens,

@@ -30,6 +30,7 @@ fn preset_config(
     preset: PresetArg,
     obs: ObsKind,
     backbone: BackboneArg,
+    wrist: bool,
     overrides: Option<&std::path::Path>,
 ) -> Result<DiffusionConfig> {
     let mut config = match preset {
@@ -44,6 +45,13 @@ fn preset_config(
     };
     if backbone == BackboneArg::Transformer {
         config = with_transformer(config, preset, obs);
+    }
+    if wrist {
+        ensure!(
+            obs == ObsKind::Image,
+            "--wrist adds a second camera to an image policy: give --obs image"
+        );
+        config = config.with_wrist_camera();
     }
     if let Some(path) = overrides {
         config = config.with_overrides(&read_overrides(path)?)?;
@@ -89,7 +97,7 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
         PolicyObsArg::Keypoints => ObsKind::Keypoints,
         PolicyObsArg::Image => ObsKind::Image,
     };
-    let mut config = preset_config(a.preset, obs, a.backbone, a.config.as_deref())?;
+    let mut config = preset_config(a.preset, obs, a.backbone, a.wrist, a.config.as_deref())?;
     let first = a.data.first().context("--data: at least one dataset")?;
     fit_to_data(&mut config, first)?;
     let mut data = train_data::load_many(&a.data, &config, train_data::Extra::default())?;
@@ -221,6 +229,7 @@ pub fn encoder(cli: &Cli, a: &TrainEncoderArgs) -> Result<()> {
         a.preset,
         ObsKind::Image,
         BackboneArg::Unet,
+        false,
         a.config.as_deref(),
     )?;
     fit_to_data(&mut config, &a.data)?;

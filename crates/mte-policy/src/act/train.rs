@@ -469,6 +469,7 @@ mod tests {
             state,
             env_state: Some(env),
             images: None,
+            wrist_images: None,
             action,
             episode_lengths: vec![n],
             episode_success: vec![true],

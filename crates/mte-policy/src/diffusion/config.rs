@@ -167,6 +167,10 @@ pub enum ObsKind {
     Keypoints,
 }
 
+/// The wrist camera's feature name (LeRobot's `observation.images.<camera>` form; the
+/// name `mte data generate --obs pixels,wrist` writes).
+pub const WRIST_CAMERA: &str = "observation.images.wrist";
+
 /// torchvision ResNet-18's stem width.
 pub const RESNET18_WIDTH: usize = 64;
 
@@ -257,6 +261,42 @@ pub(crate) fn action_dim_of(
             other,
             "an `action` feature of shape [d]",
         )),
+    }
+}
+
+/// The order in which a `config.json` lists its `input_features` (serde's maps forget it;
+/// LeRobot's camera features follow it).
+#[derive(Deserialize)]
+#[serde(default)]
+#[derive(Default)]
+struct FeatureOrder {
+    input_features: KeyOrder,
+}
+
+/// A JSON object's keys in file order.
+#[derive(Default)]
+struct KeyOrder(Vec<String>);
+
+impl<'de> Deserialize<'de> for KeyOrder {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Keys;
+        impl<'de> serde::de::Visitor<'de> for Keys {
+            type Value = KeyOrder;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("an object")
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                mut m: A,
+            ) -> Result<KeyOrder, A::Error> {
+                let mut keys = Vec::new();
+                while let Some((k, _)) = m.next_entry::<String, serde::de::IgnoredAny>()? {
+                    keys.push(k);
+                }
+                Ok(KeyOrder(keys))
+            }
+        }
+        d.deserialize_map(Keys)
     }
 }
 
@@ -359,6 +399,22 @@ impl DiffusionConfig {
     pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
         let c: DiffusionConfig = read_json(path)?;
         c.validate()?;
+        let listed: FeatureOrder = read_json(path)?;
+        let visual: Vec<&str> = listed
+            .input_features
+            .0
+            .iter()
+            .map(String::as_str)
+            .filter(|n| c.input_features[*n].kind == FeatureType::Visual)
+            .collect();
+        if !listed.input_features.0.is_empty() && visual != c.cameras() {
+            // LeRobot concatenates camera features in the file's order, mte in its own.
+            return Err(config_err(
+                "input_features",
+                visual,
+                format!("the cameras listed in mte's order {:?}", c.cameras()),
+            ));
+        }
         Ok(c)
     }
 
@@ -382,12 +438,50 @@ impl DiffusionConfig {
             .and_then(|f| f.shape.first().copied())
     }
 
-    /// The image feature, if any: (C, H, W).
+    /// The image feature, if any: (C, H, W) (every camera has it: `validate()` checks).
     pub fn image_shape(&self) -> Option<[usize; 3]> {
         self.input_features
             .values()
             .find(|f| f.kind == FeatureType::Visual)
             .and_then(|f| (f.shape.len() == 3).then(|| [f.shape[0], f.shape[1], f.shape[2]]))
+    }
+
+    /// The cameras (VISUAL features) in the order their features are concatenated in the
+    /// conditioning (LeRobot's `image_features` order): the scene camera, fed from
+    /// `Observation::image` whatever its name, then [`WRIST_CAMERA`] (fed from
+    /// `Observation::wrist_image`) when the policy has it.
+    pub fn cameras(&self) -> Vec<&str> {
+        let mut names: Vec<&str> = self
+            .input_features
+            .iter()
+            .filter(|(_, f)| f.kind == FeatureType::Visual)
+            .map(|(n, _)| n.as_str())
+            .collect();
+        // Stable: the wrist camera last, the others in name order.
+        names.sort_by_key(|n| *n == WRIST_CAMERA);
+        names
+    }
+
+    /// Whether the policy reads the wrist camera ([`WRIST_CAMERA`]).
+    pub fn has_wrist_camera(&self) -> bool {
+        self.input_features
+            .get(WRIST_CAMERA)
+            .is_some_and(|f| f.kind == FeatureType::Visual)
+    }
+
+    /// This config with the wrist camera added beside the scene camera (same shape), or
+    /// unchanged if it has no camera. The caller validates.
+    pub fn with_wrist_camera(mut self) -> Self {
+        if let Some(shape) = self.image_shape() {
+            self.input_features.insert(
+                WRIST_CAMERA.into(),
+                PolicyFeature {
+                    kind: FeatureType::Visual,
+                    shape: shape.to_vec(),
+                },
+            );
+        }
+        self
     }
 
     /// Inference steps in use.
@@ -526,6 +620,7 @@ impl DiffusionConfig {
         let Some([c, h, w]) = self.image_shape() else {
             return Ok(());
         };
+        self.validate_cameras([c, h, w])?;
         if c != 3 {
             return Err(config_err("input_features", [c, h, w], "3-channel images"));
         }
@@ -557,6 +652,40 @@ impl DiffusionConfig {
                 "crop_shape",
                 [ch, cw],
                 format!("within the {h}x{w} image, at least 32x32"),
+            ));
+        }
+        Ok(())
+    }
+
+    /// One camera of any name, or a scene camera and [`WRIST_CAMERA`], all of one shape
+    /// (LeRobot's rule for the encoder's batch).
+    fn validate_cameras(&self, shape: [usize; 3]) -> Result<(), PolicyError> {
+        let cameras = self.cameras();
+        let visual = || {
+            self.input_features
+                .iter()
+                .filter(|(_, f)| f.kind == FeatureType::Visual)
+        };
+        if let Some((name, f)) = visual().find(|(_, f)| f.shape != shape) {
+            return Err(config_err(
+                "input_features",
+                format!("{name}: {:?}", f.shape),
+                format!("every camera of one shape ({shape:?}, as {})", cameras[0]),
+            ));
+        }
+        let wrist_pair = cameras.len() == 2 && self.has_wrist_camera();
+        if cameras.len() > 1 && !wrist_pair {
+            return Err(config_err(
+                "input_features",
+                &cameras,
+                format!("one camera, or a scene camera and {WRIST_CAMERA}"),
+            ));
+        }
+        if cameras == [WRIST_CAMERA] {
+            return Err(config_err(
+                "input_features",
+                &cameras,
+                "a scene camera beside the wrist camera",
             ));
         }
         Ok(())

@@ -12,7 +12,7 @@ use rand_distr::{Distribution, StandardNormal};
 use crate::config::{DiffusionConfig, FeatureType};
 use crate::error::{PolicyError, config_err};
 use crate::kernels::Products;
-use crate::normalize::{NormMode, Normalizer, Stats};
+use crate::normalize::{ImageNorm, NormMode, Normalizer, Stats};
 pub use crate::policy::Observation;
 use crate::policy::{AttackablePolicy, AttackedQuery, ChunkPolicy, ObsNeeds, Query};
 use crate::scheduler::Scheduler;
@@ -21,16 +21,22 @@ use crate::unet::ConditionalUnet1d;
 use crate::vision::RgbEncoder;
 
 /// Normalised observation tensors of a batch: `state (B, T_o, S)`, `env (B, T_o, E)`,
-/// `image (B T_o, 3, H, W)` in [0, 1] (normalised inside, so gradients can be taken w.r.t.
-/// pixel values).
+/// `image (B T_o N, 3, H, W)` in [0, 1] for `N` cameras, rows in (query, step, camera)
+/// order as LeRobot's `(b s n)` (normalised inside, so gradients can be taken w.r.t. pixel
+/// values).
 #[derive(Clone, Debug)]
 pub struct ObsBatch {
     /// Normalised state.
     pub state: Tensor,
     /// Normalised environment state.
     pub env: Option<Tensor>,
-    /// Images in [0, 1].
+    /// Images in [0, 1], every camera's frame of a step together.
     pub image: Option<Tensor>,
+}
+
+/// The error of an image operation on a policy without a camera.
+fn no_camera() -> PolicyError {
+    config_err("input_features", "no observation.image", "an image policy")
 }
 
 /// The statistics a policy needs, by feature name (LeRobot's names).
@@ -68,11 +74,16 @@ pub struct DiffusionPolicy {
     config: DiffusionConfig,
     device: Device,
     net: NoiseNet,
-    rgb: Option<RgbEncoder>,
+    /// The image encoder: one shared by every camera, or one per camera
+    /// (`use_separate_rgb_encoder_per_camera`); empty without cameras.
+    rgb: Vec<RgbEncoder>,
+    /// The cameras, [`DiffusionConfig::cameras`]' order.
+    n_cameras: usize,
     scheduler: Scheduler,
     state_norm: Normalizer,
     env_norm: Option<Normalizer>,
-    image_norm: Option<crate::normalize::ImageNorm>,
+    /// Each camera's normalisation (from its own statistics, as LeRobot's).
+    image_norms: Vec<Option<ImageNorm>>,
     action_norm: Normalizer,
     stats: StatsMap,
 }
@@ -108,16 +119,25 @@ impl DiffusionPolicy {
         let e_dim = config.vector_dim(FeatureType::Env);
         let a_dim = config.action_dim()?;
         let vb = vb.pp("diffusion");
-        let rgb = match config.image_shape() {
-            Some(_) => Some(RgbEncoder::with_width(
+        let cameras: Vec<String> = config.cameras().into_iter().map(String::from).collect();
+        let encoder = |vb: VarBuilder| {
+            RgbEncoder::with_width(
                 config.vision_backbone_width,
                 config.crop_shape,
                 config.spatial_softmax_num_keypoints,
-                vb.pp("rgb_encoder"),
-            )?),
-            None => None,
+                vb,
+            )
         };
-        let per_step = s_dim + rgb.as_ref().map_or(0, RgbEncoder::feature_dim) + e_dim.unwrap_or(0);
+        // LeRobot's keys: `rgb_encoder.…` shared, `rgb_encoder.<i>.…` one per camera.
+        let rgb = match (cameras.len(), config.use_separate_rgb_encoder_per_camera) {
+            (0, _) => Vec::new(),
+            (_, false) => vec![encoder(vb.pp("rgb_encoder"))?],
+            (n, true) => (0..n)
+                .map(|i| encoder(vb.pp("rgb_encoder").pp(i)))
+                .collect::<candle_core::Result<_>>()?,
+        };
+        let image_dim = rgb.first().map_or(0, RgbEncoder::feature_dim) * cameras.len();
+        let per_step = s_dim + image_dim + e_dim.unwrap_or(0);
         let net = match &config.transformer {
             None => NoiseNet::Unet(ConditionalUnet1d::new(
                 &config,
@@ -145,29 +165,27 @@ impl DiffusionPolicy {
             )?),
             None => None,
         };
-        let image_norm = match config.image_shape() {
-            Some(_) => crate::normalize::ImageNorm::for_mode(
-                // LeRobot: a kind absent from the mapping is not normalised.
-                config
-                    .normalization_mapping
-                    .get("VISUAL")
-                    .copied()
-                    .unwrap_or(NormMode::Identity),
-                "observation.image",
-                stats.get("observation.image"),
-            )?,
-            None => None,
-        };
+        // LeRobot: a kind absent from the mapping is not normalised.
+        let visual = config
+            .normalization_mapping
+            .get("VISUAL")
+            .copied()
+            .unwrap_or(NormMode::Identity);
+        let image_norms = cameras
+            .iter()
+            .map(|name| ImageNorm::for_mode(visual, name, stats.get(name)))
+            .collect::<Result<Vec<_>, _>>()?;
         let action_norm = norm_for(&config, &stats, "action", "ACTION", a_dim)?;
         Ok(DiffusionPolicy {
             config,
             device,
             net,
             rgb,
+            n_cameras: cameras.len(),
             scheduler,
             state_norm,
             env_norm,
-            image_norm,
+            image_norms,
             action_norm,
             stats,
         })
@@ -221,6 +239,7 @@ impl DiffusionPolicy {
         let mut env = Vec::new();
         let mut image = Vec::new();
         let img_shape = self.config.image_shape();
+        let wrist = self.config.has_wrist_camera();
         for h in histories {
             if h.len() != t_o {
                 return Err(PolicyError::Input {
@@ -257,15 +276,26 @@ impl DiffusionPolicy {
                             reason,
                         }
                     })?;
+                    if wrist {
+                        let px = o.wrist_image.as_deref().unwrap_or_default();
+                        crate::vision::push_chw(px, hh, ww, &mut image).map_err(|reason| {
+                            PolicyError::Input {
+                                name: "observation.images.wrist",
+                                reason,
+                            }
+                        })?;
+                    }
                 }
             }
         }
         let batch = self.normalized_obs_batch(state, self.env_norm.is_some().then_some(env), b)?;
         Ok(ObsBatch {
             image: match img_shape {
-                Some([c, hh, ww]) => {
-                    Some(Tensor::from_vec(image, (b * t_o, c, hh, ww), &self.device)?)
-                }
+                Some([c, hh, ww]) => Some(Tensor::from_vec(
+                    image,
+                    (b * t_o * self.n_cameras, c, hh, ww),
+                    &self.device,
+                )?),
                 None => None,
             },
             ..batch
@@ -310,18 +340,59 @@ impl DiffusionPolicy {
     }
 
     fn global_cond_impl(&self, obs: &ObsBatch, cropped: bool) -> Result<Tensor, PolicyError> {
-        let features = match (&self.rgb, &obs.image) {
-            (Some(enc), Some(img)) => {
-                let img = self.normalize_image(img)?;
-                Some(if cropped {
-                    enc.forward_cropped(&img)?
-                } else {
-                    enc.forward(&img)?
-                })
-            }
+        let features = match (self.rgb.is_empty(), &obs.image) {
+            (false, Some(img)) => Some(self.encode(img, cropped)?),
             _ => None,
         };
         self.global_cond_from_features(obs, features.as_ref())
+    }
+
+    /// The features `(R, F)` of frames `(R, 3, H, W)` in [0, 1] whose rows cycle through
+    /// the cameras (R a multiple of their number): each camera normalised with its own
+    /// statistics and encoded by its encoder (the shared one, or its own), rows kept.
+    fn encode(&self, img: &Tensor, cropped: bool) -> Result<Tensor, PolicyError> {
+        let run = |enc: &RgbEncoder, x: &Tensor| -> Result<Tensor, PolicyError> {
+            Ok(if cropped {
+                enc.forward_cropped(x)?
+            } else {
+                enc.forward(x)?
+            })
+        };
+        let n = self.n_cameras;
+        if n <= 1 {
+            let enc = self.rgb.first().ok_or_else(no_camera)?;
+            return run(enc, &self.normalize_camera(img, 0)?);
+        }
+        let (r, c, h, w) = img.dims4()?;
+        if !r.is_multiple_of(n) {
+            return Err(config_err(
+                "image",
+                r,
+                format!("a multiple of the {n} cameras' frames"),
+            ));
+        }
+        let by_camera = img.reshape((r / n, n, c, h, w))?;
+        let frames = |i: usize| -> Result<Tensor, PolicyError> {
+            self.normalize_camera(&by_camera.narrow(1, i, 1)?.squeeze(1)?, i)
+        };
+        let feats = if self.rgb.len() == n {
+            (0..n)
+                .map(|i| run(&self.rgb[i], &frames(i)?))
+                .collect::<Result<Vec<_>, _>>()?
+        } else {
+            let normed = (0..n).map(frames).collect::<Result<Vec<_>, _>>()?;
+            let x = Tensor::stack(&normed, 1)?.reshape((r, c, h, w))?;
+            return run(&self.rgb[0], &x);
+        };
+        Ok(Tensor::stack(&feats, 1)?.flatten_to(1)?)
+    }
+
+    /// Camera `i`'s frames normalised.
+    fn normalize_camera(&self, img: &Tensor, i: usize) -> Result<Tensor, PolicyError> {
+        match self.image_norms.get(i) {
+            Some(Some(n)) => Ok(n.apply(img)?),
+            _ => Ok(img.clone()),
+        }
     }
 
     /// The global conditioning of `obs` with its image features already computed
@@ -335,8 +406,9 @@ impl DiffusionPolicy {
     ) -> Result<Tensor, PolicyError> {
         let (b, t_o, _) = obs.state.dims3()?;
         let mut parts = vec![obs.state.clone()];
-        if let (Some(enc), Some(f)) = (&self.rgb, features) {
-            parts.push(f.reshape((b, t_o, enc.feature_dim()))?);
+        if let (Some(enc), Some(f)) = (self.rgb.first(), features) {
+            // (b s n, F) -> (b, s, n F): LeRobot's `(b s n) ... -> b s (n ...)`.
+            parts.push(f.reshape((b, t_o, self.n_cameras * enc.feature_dim()))?);
         }
         if let Some(e) = &obs.env {
             parts.push(e.clone());
@@ -344,29 +416,22 @@ impl DiffusionPolicy {
         Ok(Tensor::cat(&parts, D::Minus1)?.flatten_from(1)?)
     }
 
-    /// The image encoder's features `(N, 2K)` of full frames `(N, 3, H, W)` in [0, 1]
-    /// (normalised and centre-cropped as at evaluation), for probes and defences.
+    /// The image encoder's features `(R, 2K)` of full frames `(R, 3, H, W)` in [0, 1]
+    /// (normalised and centre-cropped as at evaluation), for probes and defences. With
+    /// several cameras the rows cycle through them ([`ObsBatch`]'s order).
     pub fn image_features(&self, img: &Tensor) -> Result<Tensor, PolicyError> {
-        let enc = self.rgb.as_ref().ok_or_else(|| {
-            config_err("input_features", "no observation.image", "an image policy")
-        })?;
-        Ok(enc.forward(&self.normalize_image(img)?)?)
+        self.encode(img, false)
     }
 
     /// [`DiffusionPolicy::image_features`] for frames already cropped to the encoder's crop
     /// (training's random crops).
     pub fn image_features_cropped(&self, img: &Tensor) -> Result<Tensor, PolicyError> {
-        let enc = self.rgb.as_ref().ok_or_else(|| {
-            config_err("input_features", "no observation.image", "an image policy")
-        })?;
-        Ok(enc.forward_cropped(&self.normalize_image(img)?)?)
+        self.encode(img, true)
     }
 
-    fn normalize_image(&self, img: &Tensor) -> Result<Tensor, PolicyError> {
-        match &self.image_norm {
-            Some(n) => Ok(n.apply(img)?),
-            None => Ok(img.clone()),
-        }
+    /// The number of cameras the policy reads (0 for a state policy).
+    pub fn n_cameras(&self) -> usize {
+        self.n_cameras
     }
 
     /// Denoise from `noise` (normalised action space, `(B, horizon, action_dim)`) with
@@ -701,7 +766,7 @@ impl ChunkPolicy for DiffusionPolicy {
         ObsNeeds {
             env_state: self.config.vector_dim(FeatureType::Env).is_some(),
             image: self.config.image_shape().map(|[_, h, w]| (w, h)),
-            wrist_image: false,
+            wrist_image: self.config.has_wrist_camera(),
         }
     }
     fn predict_chunk(

@@ -286,7 +286,16 @@ fn head_loss(policy: &DiffusionPolicy, b: &Batch, f: &Tensor) -> Result<Tensor, 
     policy.loss(&cond, &b.x0, &b.eps, &b.ts, None)
 }
 
+/// The scene camera's frame size; a policy that also reads the wrist camera is refused (the
+/// patch lives in the scene camera's frames, and the defences here fine-tune on them alone).
 fn frame_hw(policy: &DiffusionPolicy) -> Result<(usize, usize), PolicyError> {
+    if policy.n_cameras() > 1 {
+        return Err(config_err(
+            "input_features",
+            policy.config().cameras(),
+            "one camera (the patch and the encoder defences act on the scene camera alone)",
+        ));
+    }
     match policy.config().image_shape() {
         Some([_, h, w]) => Ok((h, w)),
         None => Err(config_err(

@@ -139,6 +139,14 @@ pub fn pretrain_encoder(
 ) -> Result<(HashMap<String, Tensor>, PretrainReport), PolicyError> {
     config.validate()?;
     pc.validate()?;
+    if config.cameras().len() > 1 || config.use_separate_rgb_encoder_per_camera {
+        // The warm start is one shared encoder's weights, learnt on the scene camera.
+        return Err(config_err(
+            "input_features",
+            config.cameras(),
+            "one camera and a shared encoder (the warm start regresses the scene camera)",
+        ));
+    }
     let t0 = std::time::Instant::now();
     let inputs = Inputs::of(config, data)?;
     let (frames, k) = (inputs.frames, inputs.k);

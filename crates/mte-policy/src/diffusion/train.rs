@@ -111,6 +111,9 @@ pub struct TrainData {
     pub env_state: Option<Vec<f32>>,
     /// Images per frame, HWC u8, if the policy uses them.
     pub images: Option<Vec<u8>>,
+    /// The wrist camera's images per frame, HWC u8 (the scene camera's size), if the policy
+    /// reads the wrist camera.
+    pub wrist_images: Option<Vec<u8>>,
     /// Actions per frame (frames x action_dim).
     pub action: Vec<f32>,
     /// Frames per episode, in storage order.
@@ -313,21 +316,19 @@ fn draw_batch(
             if let (Some(d), Some(e)) = (e_dim, &data.env_state) {
                 env.extend_from_slice(&e[f * d..(f + 1) * d]);
             }
-            if let (Some(shape @ [_, h, w]), Some(px)) = (image, &data.images) {
-                let (top, left) =
-                    crop_origin([h, w], [crop_h, crop_w], crop && config.crop_is_random, rng);
-                push_crop(
-                    px,
-                    f,
-                    shape,
-                    Crop {
+            if let Some(shape @ [_, h, w]) = image {
+                // Each camera's frame of the step, each with its own crop.
+                for px in camera_frames(data, policy.n_cameras())? {
+                    let (top, left) =
+                        crop_origin([h, w], [crop_h, crop_w], crop && config.crop_is_random, rng);
+                    let window = Crop {
                         top,
                         left,
                         h: crop_h,
                         w: crop_w,
-                    },
-                    &mut imgs,
-                );
+                    };
+                    push_crop(px, f, shape, window, &mut imgs);
+                }
             }
         }
         for k in 0..tp as isize {
@@ -343,7 +344,7 @@ fn draw_batch(
         image: match image {
             Some([c, _, _]) => Some(Tensor::from_vec(
                 imgs,
-                (b * t_o, c, crop_h, crop_w),
+                (b * t_o * policy.n_cameras(), c, crop_h, crop_w),
                 device,
             )?),
             None => None,
@@ -353,8 +354,36 @@ fn draw_batch(
     Ok((obs, x0, frames))
 }
 
+/// The frames of each of the policy's `n` cameras in `data` (the scene camera's, then the
+/// wrist camera's), or an error naming the one missing.
+fn camera_frames(data: &TrainData, n: usize) -> Result<Vec<&[u8]>, PolicyError> {
+    let scene = data
+        .images
+        .as_deref()
+        .ok_or_else(|| config_err("dataset", "no images", "observation.image frames"))?;
+    if n < 2 {
+        return Ok(vec![scene]);
+    }
+    let wrist = data.wrist_images.as_deref().ok_or_else(|| {
+        config_err(
+            "dataset",
+            "no wrist images",
+            "observation.images.wrist frames (the policy reads the wrist camera)",
+        )
+    })?;
+    if wrist.len() != scene.len() {
+        return Err(config_err(
+            "dataset",
+            format!("{} wrist pixel values", wrist.len()),
+            format!("{}, one wrist frame per scene frame", scene.len()),
+        ));
+    }
+    Ok(vec![scene, wrist])
+}
+
 /// The evaluation-time image features (centre crop) of the frames `range` of `data`
-/// (`range.len() x feature_dim`, row-major), computed in batches of 256 frames.
+/// (`range.len() x n_cameras feature_dim`, row-major, each frame's cameras in the policy's
+/// order), computed in batches of 256 frames.
 pub fn frame_features(
     policy: &DiffusionPolicy,
     data: &TrainData,
@@ -364,11 +393,8 @@ pub fn frame_features(
         .config()
         .image_shape()
         .ok_or_else(|| config_err("input_features", "no observation.image", "an image policy"))?;
-    let px = data
-        .images
-        .as_ref()
-        .ok_or_else(|| config_err("dataset", "no images", "observation.image frames"))?;
-    let n = px.len() / (c * h * w);
+    let cameras = camera_frames(data, policy.n_cameras())?;
+    let n = cameras[0].len() / (c * h * w);
     if range.end > n {
         return Err(config_err(
             "frames",
@@ -381,21 +407,19 @@ pub fn frame_features(
     for lo in range.clone().step_by(256) {
         let hi = (lo + 256).min(range.end);
         buf.clear();
+        let full = Crop {
+            top: 0,
+            left: 0,
+            h,
+            w,
+        };
         for f in lo..hi {
-            push_crop(
-                px,
-                f,
-                [c, h, w],
-                Crop {
-                    top: 0,
-                    left: 0,
-                    h,
-                    w,
-                },
-                &mut buf,
-            );
+            for px in &cameras {
+                push_crop(px, f, [c, h, w], full, &mut buf);
+            }
         }
-        let t = Tensor::from_slice(&buf, (hi - lo, c, h, w), policy.device())?;
+        let rows = (hi - lo) * cameras.len();
+        let t = Tensor::from_slice(&buf, (rows, c, h, w), policy.device())?;
         let feats = policy.image_features(&t)?;
         out.extend(feats.flatten_all()?.to_vec1::<f32>()?);
     }
@@ -551,7 +575,7 @@ fn batch_loss(
     let eps = Tensor::from_vec(eps, (b, tp, a_dim), device)?;
     let cond = match cached {
         Some(feats) => {
-            let d = 2 * config.spatial_softmax_num_keypoints;
+            let d = policy.n_cameras() * 2 * config.spatial_softmax_num_keypoints;
             let rows: Vec<f32> = frames
                 .iter()
                 .flat_map(|&f| feats[f * d..(f + 1) * d].iter().copied())
@@ -912,6 +936,7 @@ mod tests {
             state: vec![0.0; frames * 2],
             env_state: Some(vec![0.0; frames * 16]),
             images: None,
+            wrist_images: None,
             action: vec![0.0; frames * 2],
             episode_lengths: lengths.clone(),
             episode_success: vec![true, false, true],

@@ -227,8 +227,10 @@ fn an_observation_without_the_wrist_frame_is_refused_by_name() {
 #[test]
 fn the_loss_gradient_reaches_both_cameras_pixels() {
     let (policy, _) = tiny(false);
-    // Some of these synthetic frames (obs(1) among them) have no pixel gradient at all
-    // under this random network, with one camera as with two; these two have one.
+    // Some of these synthetic frames (obs(1) among them) have every feature at zero after
+    // the encoder's final ReLU (LeRobot's) under this random 4-keypoint network, so no pixel
+    // gradient at all, with one camera as with two (a finite difference agrees); these two
+    // frames have live features.
     let batch = policy.obs_batch(&[&[obs(3), obs(4)]]).expect("batch");
     let x0 = Tensor::zeros((1, 16, 2), DType::F32, &Device::Cpu).expect("x0");
     let eps = Tensor::ones((1, 16, 2), DType::F32, &Device::Cpu).expect("eps");

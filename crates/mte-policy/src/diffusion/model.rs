@@ -9,7 +9,7 @@ use candle_nn::VarBuilder;
 use rand::RngCore;
 use rand_distr::{Distribution, StandardNormal};
 
-use crate::config::{DiffusionConfig, FeatureType};
+use crate::config::{DiffusionConfig, FeatureType, WRIST_CAMERA};
 use crate::error::{PolicyError, config_err};
 use crate::kernels::Products;
 use crate::normalize::{ImageNorm, NormMode, Normalizer, Stats};
@@ -269,21 +269,13 @@ impl DiffusionPolicy {
                     }
                 }
                 if let Some([_, hh, ww]) = img_shape {
-                    let px = o.image.as_deref().unwrap_or_default();
-                    crate::vision::push_chw(px, hh, ww, &mut image).map_err(|reason| {
-                        PolicyError::Input {
-                            name: "observation.image",
-                            reason,
-                        }
-                    })?;
-                    if wrist {
-                        let px = o.wrist_image.as_deref().unwrap_or_default();
-                        crate::vision::push_chw(px, hh, ww, &mut image).map_err(|reason| {
-                            PolicyError::Input {
-                                name: "observation.images.wrist",
-                                reason,
-                            }
-                        })?;
+                    // The step's frames in camera order: the scene's, then the wrist's.
+                    let scene = ("observation.image", &o.image);
+                    let wrist = wrist.then_some((WRIST_CAMERA, &o.wrist_image));
+                    for (name, px) in std::iter::once(scene).chain(wrist) {
+                        let px = px.as_deref().unwrap_or_default();
+                        crate::vision::push_chw(px, hh, ww, &mut image)
+                            .map_err(|reason| PolicyError::Input { name, reason })?;
                     }
                 }
             }

@@ -234,6 +234,11 @@ pub struct TrainActArgs {
     /// the dataset needs `--obs state,keypoints,pixels`).
     #[arg(long, value_enum, default_value_t = PolicyObsArg::Keypoints)]
     pub obs: PolicyObsArg,
+    /// With `--obs image`: also the wrist camera (`observation.images.wrist`, from `mte
+    /// data generate --obs pixels,wrist`), its feature-map tokens after the scene camera's
+    /// through the one backbone (LeRobot's ACT).
+    #[arg(long)]
+    pub wrist: bool,
     /// Optimiser steps in total (a resumed run continues to this count).
     #[arg(long, default_value_t = 20000)]
     pub steps: usize,

@@ -172,9 +172,19 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
     };
     // The arrays and their statistics, as a Diffusion Policy of the same observation reads
     // them (the image's per-channel mean and std included).
-    let dp = DiffusionConfig::cpu(obs);
+    let mut dp = DiffusionConfig::cpu(obs);
+    if a.wrist {
+        ensure!(
+            obs == ObsKind::Image,
+            "--wrist adds a second camera to an image policy: give --obs image"
+        );
+        dp = dp.with_wrist_camera();
+    }
     if let Some(shape) = dp.image_shape() {
         config = config.with_camera("observation.image", shape);
+        if a.wrist {
+            config = config.with_wrist_camera();
+        }
     }
     if let Some(path) = &a.config {
         config = config.with_overrides(&read_overrides(path)?)?;

@@ -10,7 +10,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::{FeatureType, PolicyFeature, action_dim_of, read_json};
+use crate::config::{FeatureType, PolicyFeature, WRIST_CAMERA, action_dim_of, read_json};
 use crate::error::{PolicyError, config_err};
 use crate::normalize::NormMode;
 
@@ -179,6 +179,20 @@ impl ActConfig {
         self
     }
 
+    /// `self` with the wrist camera ([`WRIST_CAMERA`]) beside its scene camera, at the
+    /// scene camera's shape; unchanged without a camera. The caller validates.
+    pub fn with_wrist_camera(mut self) -> Self {
+        let scene = self
+            .input_features
+            .values()
+            .find(|f| f.kind == FeatureType::Visual)
+            .cloned();
+        if let Some(f) = scene {
+            self.input_features.insert(WRIST_CAMERA.to_string(), f);
+        }
+        self
+    }
+
     /// Override fields of `self` with those present in the JSON object `patch` (LeRobot's
     /// config.json names); an unknown field is an error.
     pub fn with_overrides(&self, patch: &serde_json::Value) -> Result<Self, PolicyError> {
@@ -257,6 +271,25 @@ impl ActConfig {
         if cameras.is_empty() {
             return Ok(());
         }
+        let names: Vec<&str> = cameras.iter().map(|(n, _)| n.as_str()).collect();
+        let wrist_pair = names.len() == 2 && names[1] == WRIST_CAMERA;
+        if (names.len() > 1 && !wrist_pair) || names == [WRIST_CAMERA] {
+            return Err(config_err(
+                "input_features",
+                &names,
+                format!("one camera, or a scene camera and {WRIST_CAMERA}"),
+            ));
+        }
+        if let Some((name, shape)) = cameras.iter().find(|(_, s)| *s != cameras[0].1) {
+            return Err(config_err(
+                "input_features",
+                format!("{name}: {shape:?}"),
+                format!(
+                    "every camera of one shape ({:?}, as {})",
+                    cameras[0].1, names[0]
+                ),
+            ));
+        }
         if self.vision_backbone != "resnet18" {
             return Err(config_err(
                 "vision_backbone",
@@ -298,13 +331,15 @@ impl ActConfig {
             .any(|f| f.kind == FeatureType::Visual)
     }
 
-    /// The cameras `(name, [3, H, W])` in the order of their names (LeRobot stacks them in
-    /// its config's order, which for one camera is the same).
+    /// The cameras `(name, [3, H, W])` in the order their tokens enter the encoder
+    /// (LeRobot's: its config's order): the scene camera, fed from `Observation::image`
+    /// whatever its name, then [`WRIST_CAMERA`] (`Observation::wrist_image`).
     ///
     /// # Errors
     /// A camera whose shape is not three channels of at least 1 x 1 px.
     pub fn image_features(&self) -> Result<Vec<(String, [usize; 3])>, PolicyError> {
-        self.input_features
+        let mut cams = self
+            .input_features
             .iter()
             .filter(|(_, f)| f.kind == FeatureType::Visual)
             .map(|(name, f)| match f.shape.as_slice() {
@@ -315,7 +350,10 @@ impl ActConfig {
                     "an RGB image shape [3, H, W]",
                 )),
             })
-            .collect()
+            .collect::<Result<Vec<_>, _>>()?;
+        // Stable: the wrist camera last, the others in name order.
+        cams.sort_by_key(|(n, _)| n == WRIST_CAMERA);
+        Ok(cams)
     }
 
     fn dim_of(&self, kind: FeatureType) -> Option<usize> {
@@ -354,6 +392,8 @@ impl ActConfig {
     pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
         let c: ActConfig = read_json(path)?;
         c.validate()?;
+        let cameras: Vec<String> = c.image_features()?.into_iter().map(|(n, _)| n).collect();
+        crate::config::check_camera_order(path, &cameras)?;
         Ok(c)
     }
 }

@@ -25,12 +25,13 @@ pub struct ActPolicy {
     net: ActNet,
     state_norm: Option<Normalizer>,
     env_norm: Option<Normalizer>,
-    camera: Option<Camera>,
+    /// The cameras in the config's order (the scene camera, then the wrist camera).
+    cameras: Vec<Camera>,
     action_norm: Normalizer,
     stats: StatsMap,
 }
 
-/// The camera a policy reads: its frame size and per-channel normalisation.
+/// A camera the policy reads: its frame size and per-channel normalisation.
 struct Camera {
     h: usize,
     w: usize,
@@ -39,23 +40,17 @@ struct Camera {
 }
 
 impl Camera {
-    /// The config's one camera (an [`Observation`] carries one frame; several are refused).
-    fn new(c: &ActConfig, stats: &StatsMap) -> Result<Option<Self>, PolicyError> {
-        let cams = c.image_features()?;
-        let (name, [_, h, w]) = match cams.as_slice() {
-            [] => return Ok(None),
-            [one] => one.clone(),
-            more => {
-                return Err(crate::error::config_err(
-                    "input_features",
-                    more.iter().map(|(n, _)| n).collect::<Vec<_>>(),
-                    "at most one camera (an observation carries one frame)",
-                ));
-            }
-        };
-        let norm =
-            crate::normalize::ImageNorm::for_mode(c.norm_mode("VISUAL"), &name, stats.get(&name))?;
-        Ok(Some(Self { h, w, norm }))
+    /// The config's cameras, each with its own statistics (`validate()` allows one, or the
+    /// scene camera and the wrist camera of one size).
+    fn all(c: &ActConfig, stats: &StatsMap) -> Result<Vec<Self>, PolicyError> {
+        c.image_features()?
+            .into_iter()
+            .map(|(name, [_, h, w])| {
+                let mode = c.norm_mode("VISUAL");
+                let norm = crate::normalize::ImageNorm::for_mode(mode, &name, stats.get(&name))?;
+                Ok(Self { h, w, norm })
+            })
+            .collect()
     }
 
     /// Frames `(B, 3, H, W)` in [0, 1] normalised as the network reads them.
@@ -73,7 +68,8 @@ pub struct ObsTensors {
     pub state: Option<Tensor>,
     /// Normalised environment state `(B, e)`.
     pub env: Option<Tensor>,
-    /// Frames `(B, 3, H, W)` in [0, 1], before normalisation (PGD's space).
+    /// Frames `(B N, 3, H, W)` in [0, 1] for `N` cameras, each observation's cameras
+    /// together (rows `(b n)`), before normalisation (PGD's space).
     pub image: Option<Tensor>,
 }
 
@@ -107,7 +103,7 @@ impl ActPolicy {
             .transpose()?;
         let action_norm = normalizer(&config, &stats, "action", "ACTION", config.action_dim()?)?;
         Ok(Self {
-            camera: Camera::new(&config, &stats)?,
+            cameras: Camera::all(&config, &stats)?,
             net: ActNet::new(config, vb)?,
             state_norm,
             env_norm,
@@ -137,26 +133,22 @@ impl ActPolicy {
     /// An absent or misshapen input, named.
     pub fn obs_tensors(&self, obs: &[&Observation]) -> Result<ObsTensors, PolicyError> {
         let mut t = self.obs_tensors_without_image(obs)?;
-        t.image = match &self.camera {
-            Some(cam) => {
-                let mut flat = Vec::with_capacity(obs.len() * 3 * cam.h * cam.w);
-                for o in obs {
-                    let px = o.image.as_deref().unwrap_or_default();
-                    crate::vision::push_chw(px, cam.h, cam.w, &mut flat).map_err(|reason| {
-                        PolicyError::Input {
-                            name: "observation.image",
-                            reason,
-                        }
-                    })?;
-                }
-                Some(Tensor::from_vec(
-                    flat,
-                    (obs.len(), 3, cam.h, cam.w),
-                    &Device::Cpu,
-                )?)
-            }
-            None => None,
+        let Some(cam) = self.cameras.first() else {
+            return Ok(t);
         };
+        let n = self.cameras.len();
+        let mut flat = Vec::with_capacity(obs.len() * n * 3 * cam.h * cam.w);
+        for o in obs {
+            let scene = ("observation.image", &o.image);
+            let wrist = (n > 1).then_some((crate::config::WRIST_CAMERA, &o.wrist_image));
+            for (name, px) in std::iter::once(scene).chain(wrist) {
+                let px = px.as_deref().unwrap_or_default();
+                crate::vision::push_chw(px, cam.h, cam.w, &mut flat)
+                    .map_err(|reason| PolicyError::Input { name, reason })?;
+            }
+        }
+        let shape = (obs.len() * n, 3, cam.h, cam.w);
+        t.image = Some(Tensor::from_vec(flat, shape, &Device::Cpu)?);
         Ok(t)
     }
 
@@ -215,9 +207,9 @@ impl ActPolicy {
         env: Option<&Tensor>,
         image: Option<&Tensor>,
     ) -> Result<Tensor, PolicyError> {
-        let images = match (&self.camera, image) {
-            (Some(cam), Some(img)) => vec![cam.normalize(img)?],
-            _ => Vec::new(),
+        let images = match image {
+            Some(img) => self.per_camera(img)?,
+            None => Vec::new(),
         };
         let inputs = ActInputs {
             state: obs.state.as_ref(),
@@ -235,8 +227,8 @@ impl ActPolicy {
         images: &'a mut Vec<Tensor>,
     ) -> Result<ActInputs<'a>, PolicyError> {
         images.clear();
-        if let (Some(cam), Some(img)) = (&self.camera, &obs.image) {
-            images.push(cam.normalize(img)?);
+        if let Some(img) = &obs.image {
+            images.extend(self.per_camera(img)?);
         }
         Ok(ActInputs {
             state: obs.state.as_ref(),
@@ -246,22 +238,64 @@ impl ActPolicy {
         })
     }
 
-    /// The backbone's feature map `(B, C, h, w)` of `obs`'s frames (normalised as the
-    /// network reads them; each sample's products of a batch of one's shape, so the bits
-    /// an evaluation computes); `None` without a camera.
+    /// The backbone's feature maps `(B N, C, h, w)` of `obs`'s frames (rows as
+    /// [`ObsTensors::image`]'s; normalised as the network reads them; each sample's products
+    /// of a batch of one's shape, so the bits an evaluation computes); `None` without a
+    /// camera.
     pub fn backbone_features(&self, obs: &ObsTensors) -> Result<Option<Tensor>, PolicyError> {
-        let (Some(cam), Some(img)) = (&self.camera, &obs.image) else {
-            return Ok(None);
-        };
-        Ok(self.net.backbone_features(&cam.normalize(img)?)?)
+        match self.normalized_image(obs)? {
+            Some(x) => Ok(self.net.backbone_features(&x)?),
+            None => Ok(None),
+        }
     }
 
-    /// `obs`'s frames normalised as the network reads them; `None` without a camera.
+    /// `obs`'s frames normalised as the network reads them, each camera with its own
+    /// statistics (rows as [`ObsTensors::image`]'s); `None` without a camera.
     pub fn normalized_image(&self, obs: &ObsTensors) -> Result<Option<Tensor>, PolicyError> {
-        match (&self.camera, &obs.image) {
-            (Some(cam), Some(img)) => Ok(Some(cam.normalize(img)?)),
-            _ => Ok(None),
+        let Some(img) = &obs.image else {
+            return Ok(None);
+        };
+        let per = self.per_camera(img)?;
+        Ok(Some(match per.as_slice() {
+            [one] => one.clone(),
+            more => Tensor::stack(more, 1)?.flatten_to(1)?,
+        }))
+    }
+
+    /// The number of cameras the policy reads.
+    pub fn n_cameras(&self) -> usize {
+        self.cameras.len()
+    }
+
+    /// Rows `(B N, …)` in `(b n)` order as one `(B, …)` tensor per camera.
+    pub fn split_cameras(&self, rows: &Tensor) -> Result<Vec<Tensor>, PolicyError> {
+        let n = self.cameras.len().max(1);
+        if n == 1 {
+            return Ok(vec![rows.clone()]);
         }
+        let dims = rows.dims();
+        if dims.is_empty() || !dims[0].is_multiple_of(n) {
+            return Err(crate::error::config_err(
+                "image",
+                dims,
+                format!("rows in multiples of the {n} cameras"),
+            ));
+        }
+        let mut shape = vec![dims[0] / n, n];
+        shape.extend_from_slice(&dims[1..]);
+        let by_camera = rows.reshape(shape)?;
+        (0..n)
+            .map(|i| Ok(by_camera.narrow(1, i, 1)?.squeeze(1)?))
+            .collect()
+    }
+
+    /// Frames `(B N, 3, H, W)` as each camera's normalised `(B, 3, H, W)` batch.
+    fn per_camera(&self, img: &Tensor) -> Result<Vec<Tensor>, PolicyError> {
+        self.split_cameras(img)?
+            .iter()
+            .zip(&self.cameras)
+            .map(|(x, cam)| Ok(cam.normalize(x)?))
+            .collect()
     }
 
     /// Normalises one action row in place.
@@ -344,8 +378,8 @@ impl ChunkPolicy for ActPolicy {
     fn needs(&self) -> ObsNeeds {
         ObsNeeds {
             env_state: self.env_norm.is_some(),
-            image: self.camera.as_ref().map(|c| (c.w, c.h)),
-            wrist_image: false,
+            image: self.cameras.first().map(|c| (c.w, c.h)),
+            wrist_image: self.cameras.len() > 1,
         }
     }
     fn attackable(&self) -> Option<&dyn AttackablePolicy> {

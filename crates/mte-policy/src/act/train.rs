@@ -112,6 +112,10 @@ fn observations(
     let sd = data.state.len() / frames;
     let ed = data.env_state.as_ref().map(|e| e.len() / frames);
     let px = data.images.as_ref().map(|i| i.len() / frames);
+    let wrist = data
+        .wrist_images
+        .as_ref()
+        .filter(|_| images && policy.n_cameras() > 1);
     let obs: Vec<crate::policy::Observation> = idx
         .iter()
         .map(|&f| crate::policy::Observation {
@@ -124,7 +128,11 @@ fn observations(
             image: (data.images.as_ref().zip(px))
                 .filter(|_| images)
                 .map(|(i, n)| i[f * n..(f + 1) * n].to_vec()),
-            wrist_image: None,
+            // At the scene camera's size (checked by the policy when it reads it).
+            wrist_image: wrist
+                .zip(px)
+                .and_then(|(i, n)| i.get(f * n..(f + 1) * n))
+                .map(<[u8]>::to_vec),
         })
         .collect();
     let refs: Vec<&crate::policy::Observation> = obs.iter().collect();
@@ -135,11 +143,14 @@ fn observations(
     }
 }
 
-/// A frozen backbone's feature maps of every frame, `C h w` floats each.
+/// A frozen backbone's feature maps of every frame, `N C h w` floats each (its `N`
+/// cameras' maps together).
 struct FeatureCache {
     values: Vec<f32>,
     /// `(C, h, w)`.
     shape: (usize, usize, usize),
+    /// Cameras per frame.
+    cameras: usize,
 }
 
 impl FeatureCache {
@@ -157,18 +168,24 @@ impl FeatureCache {
             shape = (c, h, w);
             values.extend(f.flatten_all()?.to_vec1::<f32>()?);
         }
-        Ok(Self { values, shape })
+        let cameras = policy.n_cameras();
+        Ok(Self {
+            values,
+            shape,
+            cameras,
+        })
     }
 
-    /// The feature maps of frames `idx`, `(B, C, h, w)`.
+    /// The feature maps of frames `idx`, `(B N, C, h, w)` (rows `(b n)`).
     fn gather(&self, idx: &[usize]) -> Result<Tensor, PolicyError> {
         let (c, h, w) = self.shape;
-        let n = c * h * w;
+        let n = self.cameras * c * h * w;
         let mut out = Vec::with_capacity(idx.len() * n);
         for &f in idx {
             out.extend_from_slice(&self.values[f * n..(f + 1) * n]);
         }
-        Ok(Tensor::from_vec(out, (idx.len(), c, h, w), &Device::Cpu)?)
+        let rows = idx.len() * self.cameras;
+        Ok(Tensor::from_vec(out, (rows, c, h, w), &Device::Cpu)?)
     }
 }
 
@@ -290,9 +307,11 @@ pub fn train(
         };
         let mut images = Vec::new();
         let mut inputs = policy.inputs_of(&b.obs, &mut images)?;
-        if let Some(f) = &b.features {
-            inputs.features = std::slice::from_ref(f);
-        }
+        let features = match &b.features {
+            Some(f) => policy.split_cameras(f)?,
+            None => Vec::new(),
+        };
+        inputs.features = &features;
         let o = policy.net().forward(&inputs, Some(&vae), Some(&dropout))?;
         let (loss, l1, kld) = policy.net().loss(&o, &b.actions, &b.is_pad)?;
         if !l1.is_finite() || !kld.is_finite() {

@@ -264,6 +264,32 @@ pub(crate) fn action_dim_of(
     }
 }
 
+/// Refuses a `config.json` at `path` whose `input_features` list the `cameras` in another
+/// order than mte feeds them (LeRobot concatenates camera features, or tokens, in the
+/// file's order; serde's maps forget it). A file without `input_features` passes.
+pub(crate) fn check_camera_order<S: AsRef<str>>(
+    path: &Path,
+    cameras: &[S],
+) -> Result<(), PolicyError> {
+    let listed: FeatureOrder = read_json(path)?;
+    let ours: Vec<&str> = cameras.iter().map(AsRef::as_ref).collect();
+    let visual: Vec<&str> = listed
+        .input_features
+        .0
+        .iter()
+        .map(String::as_str)
+        .filter(|n| ours.contains(n))
+        .collect();
+    if !listed.input_features.0.is_empty() && visual != ours {
+        return Err(config_err(
+            "input_features",
+            visual,
+            format!("the cameras listed in mte's order {ours:?}"),
+        ));
+    }
+    Ok(())
+}
+
 /// The order in which a `config.json` lists its `input_features` (serde's maps forget it;
 /// LeRobot's camera features follow it).
 #[derive(Deserialize)]
@@ -399,22 +425,7 @@ impl DiffusionConfig {
     pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
         let c: DiffusionConfig = read_json(path)?;
         c.validate()?;
-        let listed: FeatureOrder = read_json(path)?;
-        let visual: Vec<&str> = listed
-            .input_features
-            .0
-            .iter()
-            .map(String::as_str)
-            .filter(|n| c.input_features[*n].kind == FeatureType::Visual)
-            .collect();
-        if !listed.input_features.0.is_empty() && visual != c.cameras() {
-            // LeRobot concatenates camera features in the file's order, mte in its own.
-            return Err(config_err(
-                "input_features",
-                visual,
-                format!("the cameras listed in mte's order {:?}", c.cameras()),
-            ));
-        }
+        check_camera_order(path, &c.cameras())?;
         Ok(c)
     }
 

@@ -30,23 +30,29 @@ fn vector(d: &Bound<'_, PyDict>, key: &str) -> PyResult<Option<Vec<f32>>> {
     }
 }
 
+/// The camera frame under `key` (`image`, `wrist_image`), if present.
+fn frame(d: &Bound<'_, PyDict>, key: &str) -> PyResult<Option<Vec<u8>>> {
+    match d.get_item(key)? {
+        Some(v) if !v.is_none() => {
+            let a: PyReadonlyArray3<'_, u8> = v.extract().map_err(|_| {
+                err(format!(
+                    "observation[{key:?}]: expected an (H, W, 3) uint8 array"
+                ))
+            })?;
+            Ok(Some(a.as_slice().map_err(err)?.to_vec()))
+        }
+        _ => Ok(None),
+    }
+}
+
 fn observation(d: &Bound<'_, PyDict>) -> PyResult<Observation> {
     let state = vector(d, "state")?
         .ok_or_else(|| err("observation without \"state\": expected the agent position (px)"))?;
-    let image = match d.get_item("image")? {
-        Some(v) if !v.is_none() => {
-            let a: PyReadonlyArray3<'_, u8> = v
-                .extract()
-                .map_err(|_| err("observation[\"image\"]: expected an (H, W, 3) uint8 array"))?;
-            Some(a.as_slice().map_err(err)?.to_vec())
-        }
-        _ => None,
-    };
     Ok(Observation {
         state,
         env_state: vector(d, "env_state")?,
-        image,
-        wrist_image: None,
+        image: frame(d, "image")?,
+        wrist_image: frame(d, "wrist_image")?,
     })
 }
 
@@ -110,6 +116,7 @@ impl PyPolicy {
         let d = PyDict::new(py);
         d.set_item("env_state", n.env_state)?;
         d.set_item("image", n.image)?;
+        d.set_item("wrist_image", n.wrist_image)?;
         Ok(d)
     }
 }

@@ -21,7 +21,7 @@ def first_observation():
 def test_bundled_policy_samples_a_seeded_chunk():
     p = mp.load(BUNDLED)
     assert (p.horizon, p.n_obs_steps, p.action_dim) == (16, 2, 2)
-    assert p.needs() == {"env_state": True, "image": None}
+    assert p.needs() == {"env_state": True, "image": None, "wrist_image": False}
     o = first_observation()
     chunk = p.predict([o, o], seed=7)
     assert chunk.shape == (16, 2) and chunk.dtype == np.float32
@@ -41,3 +41,14 @@ def test_bad_queries_are_typed_errors():
         p.predict([o], seed=0)  # one observation for a policy that reads two
     with pytest.raises(mte.MteError, match="config.json"):
         mp.load(BUNDLED / "missing")
+    # A wrist frame of the wrong dtype is named, not ignored.
+    bad = dict(o, wrist_image=np.zeros((4, 4, 3), dtype=np.float32))
+    with pytest.raises(mte.MteError, match="wrist_image"):
+        p.predict([bad, bad], seed=0)
+
+
+def test_the_wrist_frame_passes_through_the_helper():
+    frame = np.arange(4 * 4 * 3).reshape(4, 4, 3)
+    o = mp.observation([1.0, 2.0], image=frame, wrist_image=255 - frame)
+    assert o["wrist_image"].dtype == np.uint8 and o["wrist_image"].flags["C_CONTIGUOUS"]
+    np.testing.assert_array_equal(o["wrist_image"], 255 - frame)

@@ -224,6 +224,25 @@ fn it_trains_on_frames_and_on_a_frozen_backbones_maps_of_both_cameras() {
         assert_eq!(p.n_cameras(), 2);
         p.predict(&obs(2)).expect("a chunk from both cameras");
     }
+    // Wrist frames of another size, or none, are refused by name.
+    let dir = tempfile::tempdir().expect("tmp");
+    let tc = ActTrainConfig {
+        steps: 1,
+        batch_size: 2,
+        seed: 1,
+        checkpoint_every: 100,
+        init: None,
+        backbone_from: None,
+        freeze_backbone: false,
+    };
+    let mut small = data();
+    small.wrist_images = Some(vec![0; 40 * 16 * 16 * 3]);
+    let e = train(&small, config(), &tc, dir.path(), &mut |_, _, _| {}).expect_err("16 x 16");
+    assert!(e.to_string().contains("wrist pixel values"), "{e}");
+    let mut none = data();
+    none.wrist_images = None;
+    let e = train(&none, config(), &tc, dir.path(), &mut |_, _, _| {}).expect_err("no wrist");
+    assert!(e.to_string().contains(WRIST_CAMERA), "{e}");
 }
 
 #[test]

@@ -116,6 +116,18 @@ fn observations(
         .wrist_images
         .as_ref()
         .filter(|_| images && policy.n_cameras() > 1);
+    if let (Some(w), Some(i)) = (wrist, &data.images)
+        && w.len() != i.len()
+    {
+        return Err(config_err(
+            "dataset",
+            format!("{} wrist pixel values", w.len()),
+            format!(
+                "{}, one wrist frame of the scene camera's size per frame",
+                i.len()
+            ),
+        ));
+    }
     let obs: Vec<crate::policy::Observation> = idx
         .iter()
         .map(|&f| crate::policy::Observation {

@@ -289,6 +289,57 @@ pub fn push_chw(
     Ok(())
 }
 
+/// The camera frames of observation `o` that a policy reads, appended to `out` as
+/// [`push_chw`] does, in mte's camera order: the scene camera's (`image`), then, when
+/// `wrist`, the wrist camera's, each `h x w`.
+///
+/// # Errors
+/// A missing or misshapen frame, named by its camera.
+pub fn push_camera_frames(
+    o: &crate::policy::Observation,
+    wrist: bool,
+    h: usize,
+    w: usize,
+    out: &mut Vec<f32>,
+) -> std::result::Result<(), crate::error::PolicyError> {
+    let scene = ("observation.image", &o.image);
+    let wrist = wrist.then_some((crate::config::WRIST_CAMERA, &o.wrist_image));
+    for (name, px) in std::iter::once(scene).chain(wrist) {
+        push_chw(px.as_deref().unwrap_or_default(), h, w, out)
+            .map_err(|reason| crate::error::PolicyError::Input { name, reason })?;
+    }
+    Ok(())
+}
+
+/// Rows `(R, …)` whose first dimension cycles through `n` cameras (`(b n)`, as
+/// [`push_camera_frames`] lays them out) as one `(R / n, …)` tensor per camera; one camera:
+/// the rows themselves.
+///
+/// # Errors
+/// `R` not a multiple of `n`.
+pub fn split_cameras(
+    rows: &Tensor,
+    n: usize,
+) -> std::result::Result<Vec<Tensor>, crate::error::PolicyError> {
+    if n <= 1 {
+        return Ok(vec![rows.clone()]);
+    }
+    let dims = rows.dims();
+    if dims.first().is_none_or(|r| !r.is_multiple_of(n)) {
+        return Err(crate::error::config_err(
+            "image",
+            dims,
+            format!("rows in multiples of the {n} cameras"),
+        ));
+    }
+    let mut shape = vec![dims[0] / n, n];
+    shape.extend_from_slice(&dims[1..]);
+    let by_camera = rows.reshape(shape)?;
+    (0..n)
+        .map(|i| Ok(by_camera.narrow(1, i, 1)?.squeeze(1)?))
+        .collect()
+}
+
 /// torchvision's ResNet-18 up to `layer4` (no pooling, no classifier): a `(B, 3, H, W)`
 /// image in, the `(B, 8 w0, H / 32, W / 32)` feature map out (sides rounded up at each
 /// stride-2 stage).

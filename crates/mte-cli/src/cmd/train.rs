@@ -47,10 +47,7 @@ fn preset_config(
         config = with_transformer(config, preset, obs);
     }
     if wrist {
-        ensure!(
-            obs == ObsKind::Image,
-            "--wrist adds a second camera to an image policy: give --obs image"
-        );
+        wrist_needs_image(obs)?;
         config = config.with_wrist_camera();
     }
     if let Some(path) = overrides {
@@ -58,6 +55,15 @@ fn preset_config(
     }
     config.validate().context("check the preset and --config")?;
     Ok(config)
+}
+
+/// `--wrist` is a second camera: refused without the first (`--obs image`).
+fn wrist_needs_image(obs: ObsKind) -> Result<()> {
+    ensure!(
+        obs == ObsKind::Image,
+        "--wrist adds a second camera to an image policy: give --obs image"
+    );
+    Ok(())
 }
 
 /// The Diffusion Transformer's settings on top of `config`: Diffusion Policy's transformer
@@ -174,10 +180,7 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
     // them (the image's per-channel mean and std included).
     let mut dp = DiffusionConfig::cpu(obs);
     if a.wrist {
-        ensure!(
-            obs == ObsKind::Image,
-            "--wrist adds a second camera to an image policy: give --obs image"
-        );
+        wrist_needs_image(obs)?;
         dp = dp.with_wrist_camera();
     }
     if let Some(shape) = dp.image_shape() {

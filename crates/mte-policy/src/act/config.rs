@@ -10,7 +10,9 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::{FeatureType, PolicyFeature, WRIST_CAMERA, action_dim_of, read_json};
+use crate::config::{
+    FeatureType, PolicyFeature, WRIST_CAMERA, action_dim_of, check_cameras, read_json, wrist_last,
+};
 use crate::error::{PolicyError, config_err};
 use crate::normalize::NormMode;
 
@@ -271,25 +273,11 @@ impl ActConfig {
         if cameras.is_empty() {
             return Ok(());
         }
-        let names: Vec<&str> = cameras.iter().map(|(n, _)| n.as_str()).collect();
-        let wrist_pair = names.len() == 2 && names[1] == WRIST_CAMERA;
-        if (names.len() > 1 && !wrist_pair) || names == [WRIST_CAMERA] {
-            return Err(config_err(
-                "input_features",
-                &names,
-                format!("one camera, or a scene camera and {WRIST_CAMERA}"),
-            ));
-        }
-        if let Some((name, shape)) = cameras.iter().find(|(_, s)| *s != cameras[0].1) {
-            return Err(config_err(
-                "input_features",
-                format!("{name}: {shape:?}"),
-                format!(
-                    "every camera of one shape ({:?}, as {})",
-                    cameras[0].1, names[0]
-                ),
-            ));
-        }
+        let named: Vec<(&str, &[usize])> = cameras
+            .iter()
+            .map(|(n, s)| (n.as_str(), s.as_slice()))
+            .collect();
+        check_cameras(&named)?;
         if self.vision_backbone != "resnet18" {
             return Err(config_err(
                 "vision_backbone",
@@ -351,8 +339,7 @@ impl ActConfig {
                 )),
             })
             .collect::<Result<Vec<_>, _>>()?;
-        // Stable: the wrist camera last, the others in name order.
-        cams.sort_by_key(|(n, _)| n == WRIST_CAMERA);
+        cams.sort_by_key(|(n, _)| wrist_last(n));
         Ok(cams)
     }
 

@@ -139,13 +139,7 @@ impl ActPolicy {
         let n = self.cameras.len();
         let mut flat = Vec::with_capacity(obs.len() * n * 3 * cam.h * cam.w);
         for o in obs {
-            let scene = ("observation.image", &o.image);
-            let wrist = (n > 1).then_some((crate::config::WRIST_CAMERA, &o.wrist_image));
-            for (name, px) in std::iter::once(scene).chain(wrist) {
-                let px = px.as_deref().unwrap_or_default();
-                crate::vision::push_chw(px, cam.h, cam.w, &mut flat)
-                    .map_err(|reason| PolicyError::Input { name, reason })?;
-            }
+            crate::vision::push_camera_frames(o, n > 1, cam.h, cam.w, &mut flat)?;
         }
         let shape = (obs.len() * n, 3, cam.h, cam.w);
         t.image = Some(Tensor::from_vec(flat, shape, &Device::Cpu)?);
@@ -269,24 +263,7 @@ impl ActPolicy {
 
     /// Rows `(B N, …)` in `(b n)` order as one `(B, …)` tensor per camera.
     pub fn split_cameras(&self, rows: &Tensor) -> Result<Vec<Tensor>, PolicyError> {
-        let n = self.cameras.len().max(1);
-        if n == 1 {
-            return Ok(vec![rows.clone()]);
-        }
-        let dims = rows.dims();
-        if dims.is_empty() || !dims[0].is_multiple_of(n) {
-            return Err(crate::error::config_err(
-                "image",
-                dims,
-                format!("rows in multiples of the {n} cameras"),
-            ));
-        }
-        let mut shape = vec![dims[0] / n, n];
-        shape.extend_from_slice(&dims[1..]);
-        let by_camera = rows.reshape(shape)?;
-        (0..n)
-            .map(|i| Ok(by_camera.narrow(1, i, 1)?.squeeze(1)?))
-            .collect()
+        crate::vision::split_cameras(rows, self.cameras.len())
     }
 
     /// Frames `(B N, 3, H, W)` as each camera's normalised `(B, 3, H, W)` batch.

@@ -112,22 +112,14 @@ fn observations(
     let sd = data.state.len() / frames;
     let ed = data.env_state.as_ref().map(|e| e.len() / frames);
     let px = data.images.as_ref().map(|i| i.len() / frames);
-    let wrist = data
-        .wrist_images
-        .as_ref()
-        .filter(|_| images && policy.n_cameras() > 1);
-    if let (Some(w), Some(i)) = (wrist, &data.images)
-        && w.len() != i.len()
-    {
-        return Err(config_err(
-            "dataset",
-            format!("{} wrist pixel values", w.len()),
-            format!(
-                "{}, one wrist frame of the scene camera's size per frame",
-                i.len()
-            ),
-        ));
-    }
+    // The wrist camera's frames, checked against the scene camera's as for a Diffusion Policy.
+    let wrist = if images && policy.n_cameras() > 1 {
+        crate::train::camera_frames(data, policy.n_cameras())?
+            .get(1)
+            .copied()
+    } else {
+        None
+    };
     let obs: Vec<crate::policy::Observation> = idx
         .iter()
         .map(|&f| crate::policy::Observation {
@@ -140,7 +132,6 @@ fn observations(
             image: (data.images.as_ref().zip(px))
                 .filter(|_| images)
                 .map(|(i, n)| i[f * n..(f + 1) * n].to_vec()),
-            // At the scene camera's size (checked by the policy when it reads it).
             wrist_image: wrist
                 .zip(px)
                 .and_then(|(i, n)| i.get(f * n..(f + 1) * n))

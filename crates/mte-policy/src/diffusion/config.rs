@@ -264,6 +264,45 @@ pub(crate) fn action_dim_of(
     }
 }
 
+/// mte's camera rule, for every policy class: one camera of any name (the scene camera, fed
+/// from `Observation::image`), or the scene camera and [`WRIST_CAMERA`]; every camera of
+/// one shape (the bridge renders the wrist camera at the scene camera's size; LeRobot's
+/// Diffusion Policy requires it too). `cameras` are `(name, shape)` in mte's order.
+pub(crate) fn check_cameras(cameras: &[(&str, &[usize])]) -> Result<(), PolicyError> {
+    let names: Vec<&str> = cameras.iter().map(|(n, _)| *n).collect();
+    if names == [WRIST_CAMERA] {
+        return Err(config_err(
+            "input_features",
+            &names,
+            "a scene camera beside the wrist camera",
+        ));
+    }
+    let wrist_pair = names.len() == 2 && names[1] == WRIST_CAMERA;
+    if names.len() > 1 && !wrist_pair {
+        return Err(config_err(
+            "input_features",
+            &names,
+            format!("one camera, or a scene camera and {WRIST_CAMERA}"),
+        ));
+    }
+    if let Some(&(first, shape)) = cameras.first()
+        && let Some((name, other)) = cameras.iter().find(|(_, s)| *s != shape)
+    {
+        return Err(config_err(
+            "input_features",
+            format!("{name}: {other:?}"),
+            format!("every camera of one shape ({shape:?}, as {first})"),
+        ));
+    }
+    Ok(())
+}
+
+/// The sort key of mte's camera order: the wrist camera last, the others (a stable sort)
+/// in name order.
+pub(crate) fn wrist_last(name: &str) -> bool {
+    name == WRIST_CAMERA
+}
+
 /// Refuses a `config.json` at `path` whose `input_features` list the `cameras` in another
 /// order than mte feeds them (LeRobot concatenates camera features, or tokens, in the
 /// file's order; serde's maps forget it). A file without `input_features` passes.
@@ -468,8 +507,7 @@ impl DiffusionConfig {
             .filter(|(_, f)| f.kind == FeatureType::Visual)
             .map(|(n, _)| n.as_str())
             .collect();
-        // Stable: the wrist camera last, the others in name order.
-        names.sort_by_key(|n| *n == WRIST_CAMERA);
+        names.sort_by_key(|n| wrist_last(n));
         names
     }
 
@@ -631,7 +669,12 @@ impl DiffusionConfig {
         let Some([c, h, w]) = self.image_shape() else {
             return Ok(());
         };
-        self.validate_cameras([c, h, w])?;
+        let cameras: Vec<(&str, &[usize])> = self
+            .cameras()
+            .into_iter()
+            .map(|n| (n, self.input_features[n].shape.as_slice()))
+            .collect();
+        check_cameras(&cameras)?;
         if c != 3 {
             return Err(config_err("input_features", [c, h, w], "3-channel images"));
         }
@@ -663,40 +706,6 @@ impl DiffusionConfig {
                 "crop_shape",
                 [ch, cw],
                 format!("within the {h}x{w} image, at least 32x32"),
-            ));
-        }
-        Ok(())
-    }
-
-    /// One camera of any name, or a scene camera and [`WRIST_CAMERA`], all of one shape
-    /// (LeRobot's rule for the encoder's batch).
-    fn validate_cameras(&self, shape: [usize; 3]) -> Result<(), PolicyError> {
-        let cameras = self.cameras();
-        let visual = || {
-            self.input_features
-                .iter()
-                .filter(|(_, f)| f.kind == FeatureType::Visual)
-        };
-        if let Some((name, f)) = visual().find(|(_, f)| f.shape != shape) {
-            return Err(config_err(
-                "input_features",
-                format!("{name}: {:?}", f.shape),
-                format!("every camera of one shape ({shape:?}, as {})", cameras[0]),
-            ));
-        }
-        let wrist_pair = cameras.len() == 2 && self.has_wrist_camera();
-        if cameras.len() > 1 && !wrist_pair {
-            return Err(config_err(
-                "input_features",
-                &cameras,
-                format!("one camera, or a scene camera and {WRIST_CAMERA}"),
-            ));
-        }
-        if cameras == [WRIST_CAMERA] {
-            return Err(config_err(
-                "input_features",
-                &cameras,
-                "a scene camera beside the wrist camera",
             ));
         }
         Ok(())

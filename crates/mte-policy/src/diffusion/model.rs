@@ -9,7 +9,7 @@ use candle_nn::VarBuilder;
 use rand::RngCore;
 use rand_distr::{Distribution, StandardNormal};
 
-use crate::config::{DiffusionConfig, FeatureType, WRIST_CAMERA};
+use crate::config::{DiffusionConfig, FeatureType};
 use crate::error::{PolicyError, config_err};
 use crate::kernels::Products;
 use crate::normalize::{ImageNorm, NormMode, Normalizer, Stats};
@@ -269,14 +269,7 @@ impl DiffusionPolicy {
                     }
                 }
                 if let Some([_, hh, ww]) = img_shape {
-                    // The step's frames in camera order: the scene's, then the wrist's.
-                    let scene = ("observation.image", &o.image);
-                    let wrist = wrist.then_some((WRIST_CAMERA, &o.wrist_image));
-                    for (name, px) in std::iter::once(scene).chain(wrist) {
-                        let px = px.as_deref().unwrap_or_default();
-                        crate::vision::push_chw(px, hh, ww, &mut image)
-                            .map_err(|reason| PolicyError::Input { name, reason })?;
-                    }
+                    crate::vision::push_camera_frames(o, wrist, hh, ww, &mut image)?;
                 }
             }
         }
@@ -355,25 +348,18 @@ impl DiffusionPolicy {
             let enc = self.rgb.first().ok_or_else(no_camera)?;
             return run(enc, &self.normalize_camera(img, 0)?);
         }
-        let (r, c, h, w) = img.dims4()?;
-        if !r.is_multiple_of(n) {
-            return Err(config_err(
-                "image",
-                r,
-                format!("a multiple of the {n} cameras' frames"),
-            ));
-        }
-        let by_camera = img.reshape((r / n, n, c, h, w))?;
-        let frames = |i: usize| -> Result<Tensor, PolicyError> {
-            self.normalize_camera(&by_camera.narrow(1, i, 1)?.squeeze(1)?, i)
-        };
+        let normed = crate::vision::split_cameras(img, n)?
+            .iter()
+            .enumerate()
+            .map(|(i, x)| self.normalize_camera(x, i))
+            .collect::<Result<Vec<_>, _>>()?;
         let feats = if self.rgb.len() == n {
             (0..n)
-                .map(|i| run(&self.rgb[i], &frames(i)?))
+                .map(|i| run(&self.rgb[i], &normed[i]))
                 .collect::<Result<Vec<_>, _>>()?
         } else {
-            let normed = (0..n).map(frames).collect::<Result<Vec<_>, _>>()?;
-            let x = Tensor::stack(&normed, 1)?.reshape((r, c, h, w))?;
+            // The shared encoder once over every frame, rows back in (b n) order.
+            let x = Tensor::stack(&normed, 1)?.flatten_to(1)?;
             return run(&self.rgb[0], &x);
         };
         Ok(Tensor::stack(&feats, 1)?.flatten_to(1)?)

@@ -356,7 +356,7 @@ fn draw_batch(
 
 /// The frames of each of the policy's `n` cameras in `data` (the scene camera's, then the
 /// wrist camera's), or an error naming the one missing.
-fn camera_frames(data: &TrainData, n: usize) -> Result<Vec<&[u8]>, PolicyError> {
+pub(crate) fn camera_frames(data: &TrainData, n: usize) -> Result<Vec<&[u8]>, PolicyError> {
     let scene = data
         .images
         .as_deref()

@@ -881,6 +881,31 @@ pub enum AttackCommand {
     /// time (median pairwise cosine of corrupted-minus-clean candidate rows, the clean twin
     /// drawn with the executed chunk's noise): 1 is common-mode. PGD, blank frames or a patch.
     Alignment(AlignmentArgs),
+    /// How many camera frames give pixel PGD a gradient at all: per frame of a dataset, the
+    /// image encoder's features that are non-zero after its final ReLU (a frame with none has
+    /// an exactly zero pixel gradient), and the query windows whose every frame has none.
+    Activity(ActivityArgs),
+}
+
+/// `mte attack activity`
+#[derive(Debug, Args)]
+pub struct ActivityArgs {
+    /// Image Diffusion Policy checkpoint directory (one camera).
+    #[arg(long, value_name = "DIR")]
+    pub policy: PathBuf,
+    /// Dataset directory with the policy's camera frames (`mte data generate --obs pixels`).
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Half-width of uniform noise added to every pixel first (pixels in [0, 1]), as PGD's
+    /// random start draws it; repeat for several (0 is the clean frames).
+    #[arg(long, default_values_t = [0.0f32])]
+    pub eps: Vec<f32>,
+    /// Seed of the noise.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Frames encoded per forward pass.
+    #[arg(long, default_value_t = 64, value_parser = at_least_one)]
+    pub batch: usize,
 }
 
 /// The corruption `mte attack alignment` measures.

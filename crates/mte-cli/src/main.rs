@@ -31,6 +31,7 @@ fn main() -> ExitCode {
         Command::Attack(AttackCommand::Patch(a)) => cmd::attack::patch(&cli, a),
         Command::Attack(AttackCommand::Control(a)) => cmd::attack::control(&cli, a),
         Command::Attack(AttackCommand::Alignment(a)) => cmd::attack::alignment(&cli, a),
+        Command::Attack(AttackCommand::Activity(a)) => cmd::attack::activity(&cli, a),
         Command::Defend(DefendCommand::Finetune(a)) => cmd::attack::finetune(&cli, a),
         Command::Defend(DefendCommand::Probe(a)) => cmd::attack::probe(&cli, a),
         Command::Monitor(MonitorCommand::Calibrate(a)) => cmd::monitor::calibrate(&cli, a),

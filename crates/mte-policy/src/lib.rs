@@ -32,7 +32,8 @@ pub mod policy;
 pub mod vision;
 
 pub use diffusion::{
-    attack, checkpoint, config, model, patch, pretrain, scheduler, train, transformer, unet,
+    activity, attack, checkpoint, config, model, patch, pretrain, scheduler, train, transformer,
+    unet,
 };
 
 pub use attack::{PgdConfig, PgdOutcome};

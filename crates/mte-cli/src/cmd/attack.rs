@@ -394,6 +394,56 @@ pub fn probe(cli: &Cli, a: &crate::args::ProbeArgs) -> Result<()> {
     Ok(())
 }
 
+/// `mte attack activity`
+pub fn activity(cli: &Cli, a: &crate::args::ActivityArgs) -> Result<()> {
+    use mte_policy::activity::{ActivityConfig, encoder_activity};
+    use rand::SeedableRng as _;
+    let dev = candle_core::Device::Cpu;
+    let policy = mte_policy::checkpoint::load(&a.policy, &dev)
+        .with_context(|| format!("loading {}", a.policy.display()))?;
+    let data = crate::cmd::train::load_train_data(&a.data, policy.config())?;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
+    let mut reports = Vec::with_capacity(a.eps.len());
+    for &eps in &a.eps {
+        let cfg = ActivityConfig {
+            eps,
+            batch: a.batch,
+        };
+        reports.push(encoder_activity(&policy, &data, cfg, &mut rng)?);
+    }
+    let mut so = std::io::stdout().lock();
+    match cli.format {
+        Format::Json => writeln!(so, "{}", serde_json::json!(reports))?,
+        Format::Text => {
+            writeln!(
+                so,
+                "{:>6} {:>7} {:>11} {:>16} {:>12} {:>10} {:>12}",
+                "eps",
+                "frames",
+                "dead frames",
+                "dead windows",
+                "active mean",
+                "min/median",
+                "never active"
+            )?;
+            for r in &reports {
+                writeln!(
+                    so,
+                    "{:>6} {:>7} {:>11} {:>16} {:>12.2} {:>10} {:>12}",
+                    r.eps,
+                    r.frames,
+                    r.dead_frames,
+                    format!("{} of {}", r.dead_windows, r.windows),
+                    r.active_mean,
+                    format!("{}/{}", r.active_min, r.active_median),
+                    format!("{} of {}", r.never_active, r.features)
+                )?;
+            }
+        }
+    }
+    Ok(())
+}
+
 /// `mte attack control`
 pub fn control(cli: &Cli, a: &crate::args::AttackControlArgs) -> Result<()> {
     use mte_eval::patch_file::ControlKind;

@@ -5,9 +5,11 @@
 //! model with its observation encoding, sampling, loss and observation gradients (`model`),
 //! LeRobot-compatible checkpoints (`checkpoint`), training (`train`), the encoder's
 //! keypoint-regression warm start (`pretrain`), PGD on its loss (`attack`), and the physical
-//! patch, encoder fine-tuning and gradient probe (`patch`). The crate root re-exports each
+//! patch, encoder fine-tuning and gradient probe (`patch`), and the count of frames that
+//! give PGD a pixel gradient at all (`activity`). The crate root re-exports each
 //! module under its old path (`mte_policy::config`, ...).
 
+pub mod activity;
 pub mod attack;
 pub mod checkpoint;
 pub mod config;

@@ -675,6 +675,37 @@ fn patch_finetune_and_probe_run_end_to_end() {
     let cos = r["cosine"].as_f64().unwrap();
     assert!((-1.0..=1.0 + 1e-9).contains(&cos), "{r}");
     assert!(r["grad_norm_ratio"].as_f64().unwrap() > 0.0, "{r}");
+    // The encoder's activity on the demonstration frames, clean and at a random start.
+    let out = mte()
+        .args([
+            "--format", "json", "attack", "activity", "--eps", "0", "--eps", "0.1",
+        ])
+        .arg("--policy")
+        .arg(p("policy"))
+        .arg("--data")
+        .arg(p("demos"))
+        .assert()
+        .success();
+    let rows: serde_json::Value = serde_json::from_slice(&out.get_output().stdout).unwrap();
+    let rows = rows.as_array().unwrap();
+    assert_eq!(rows.len(), 2, "{rows:?}");
+    for (row, eps) in rows.iter().zip([0.0, 0.1]) {
+        assert!((row["eps"].as_f64().unwrap() - eps).abs() < 1e-6, "{row}");
+        assert_eq!(row["features"], 8, "{row}");
+        let frames = row["frames"].as_u64().unwrap();
+        assert!(
+            frames > 0 && row["dead_frames"].as_u64().unwrap() <= frames,
+            "{row}"
+        );
+    }
+    mte()
+        .args(["attack", "activity", "--eps=-1", "--policy"])
+        .arg(p("policy"))
+        .arg("--data")
+        .arg(p("demos"))
+        .assert()
+        .code(2)
+        .stderr(predicate::str::contains("eps"));
     // A keypoint policy cannot carry a patch: a clear error, exit 2.
     mte()
         .args(["attack", "patch", "--policy"])

@@ -78,9 +78,8 @@ fn active_alone(p: &DiffusionPolicy, k: usize) -> usize {
         .image_features(&x)
         .expect("features")
         .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap();
+        .and_then(|t| t.to_vec1())
+        .expect("a feature row");
     f.iter().filter(|&&v| v != 0.0).count()
 }
 

@@ -273,9 +273,11 @@ pub struct TrainActArgs {
 /// `mte train encoder`
 #[derive(Debug, Args)]
 pub struct TrainEncoderArgs {
-    /// Dataset directory (from `mte data generate --obs state,keypoints,pixels`).
-    #[arg(long, value_name = "DIR")]
-    pub data: PathBuf,
+    /// Dataset directory (from `mte data generate --obs state,keypoints,pixels`); repeat it
+    /// to pre-train on several as one (the first one's frame size and object-state width
+    /// set the encoder's).
+    #[arg(long, value_name = "DIR", required = true)]
+    pub data: Vec<PathBuf>,
     /// Model preset (its encoder width, crop and keypoint count).
     #[arg(long, value_enum, default_value_t = PresetArg::Cpu)]
     pub preset: PresetArg,

@@ -496,10 +496,13 @@ fn patch_finetune_and_probe_run_end_to_end() {
         r#"{"down_dims": [8, 16], "n_groups": 4, "diffusion_step_embed_dim": 8, "spatial_softmax_num_keypoints": 4}"#,
     )
     .unwrap();
-    // The encoder warm start, then a policy on top of it with the encoder frozen.
+    // The encoder warm start (on the demonstrations given twice: several datasets pool),
+    // then a policy on top of it with the encoder frozen.
     mte()
         .args(["--format", "json", "train", "encoder", "--steps", "2"])
         .args(["--batch-size", "4", "--data"])
+        .arg(p("demos"))
+        .arg("--data")
         .arg(p("demos"))
         .arg("--config")
         .arg(&tiny)

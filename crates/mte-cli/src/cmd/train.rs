@@ -245,8 +245,9 @@ pub fn encoder(cli: &Cli, a: &TrainEncoderArgs) -> Result<()> {
         false,
         a.config.as_deref(),
     )?;
-    fit_to_data(&mut config, &a.data)?;
-    let data = train_data::load(&a.data, &config, train_data::Extra { keypoints: true })?;
+    let first = a.data.first().context("--data: at least one dataset")?;
+    fit_to_data(&mut config, first)?;
+    let data = train_data::load_many(&a.data, &config, train_data::Extra { keypoints: true })?;
     let pc = EncoderPretrainConfig {
         steps: a.steps,
         batch_size: a.batch_size,

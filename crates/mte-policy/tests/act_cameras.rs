@@ -205,19 +205,24 @@ fn data() -> TrainData {
     }
 }
 
+/// Training settings of these tests: seed 1, no checkpoint before the end, no init.
+fn train_config(steps: usize, batch_size: usize, freeze_backbone: bool) -> ActTrainConfig {
+    ActTrainConfig {
+        steps,
+        batch_size,
+        seed: 1,
+        checkpoint_every: 100,
+        init: None,
+        backbone_from: None,
+        freeze_backbone,
+    }
+}
+
 #[test]
 fn it_trains_on_frames_and_on_a_frozen_backbones_maps_of_both_cameras() {
     for freeze_backbone in [false, true] {
         let dir = tempfile::tempdir().expect("tmp");
-        let tc = ActTrainConfig {
-            steps: 3,
-            batch_size: 4,
-            seed: 1,
-            checkpoint_every: 100,
-            init: None,
-            backbone_from: None,
-            freeze_backbone,
-        };
+        let tc = train_config(3, 4, freeze_backbone);
         let r = train(&data(), config(), &tc, dir.path(), &mut |_, _, _| {}).expect("train");
         assert_eq!(r.step, 3);
         let p = ActPolicy::load(dir.path()).expect("load");
@@ -226,15 +231,7 @@ fn it_trains_on_frames_and_on_a_frozen_backbones_maps_of_both_cameras() {
     }
     // Wrist frames of another size, or none, are refused by name.
     let dir = tempfile::tempdir().expect("tmp");
-    let tc = ActTrainConfig {
-        steps: 1,
-        batch_size: 2,
-        seed: 1,
-        checkpoint_every: 100,
-        init: None,
-        backbone_from: None,
-        freeze_backbone: false,
-    };
+    let tc = train_config(1, 2, false);
     let mut small = data();
     small.wrist_images = Some(vec![0; 40 * 16 * 16 * 3]);
     let e = train(&small, config(), &tc, dir.path(), &mut |_, _, _| {}).expect_err("16 x 16");

@@ -29,9 +29,9 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
 use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use mte_sim::ResetStream;
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::Reporter;
@@ -552,16 +552,13 @@ pub fn run(
         writers: &writers,
         reporter,
     };
-    let results: Vec<Result<usize, SweepError>> = pool.install(|| {
-        tasks
-            .par_iter()
-            .map(|t| ctx.run(t, options.batch))
-            .collect()
+    let results = run_in_order(&pool, options.workers.max(1), &tasks, |t| {
+        ctx.run(t, options.batch)
     });
     reporter.finish();
     let mut episodes_run = 0;
     for r in results {
-        episodes_run += r?;
+        episodes_run += r.ok_or_else(poisoned)??;
     }
     let errors = writers.errors.into_inner().map_err(|_| poisoned())?;
     Ok(SweepSummary {
@@ -576,6 +573,38 @@ pub fn run(
             .map(|(c, _)| c.id.clone())
             .collect(),
     })
+}
+
+/// Runs `tasks` on `workers` threads of `pool`, each thread taking the next task in list
+/// order when it is free, so that the cells of a sweep start in the order its spec gives
+/// them (rayon's `par_iter` would split the list in halves and start the second half at
+/// once). Results in list order; `None` only where a task panicked.
+fn run_in_order<T: Sync, R: Send>(
+    pool: &rayon::ThreadPool,
+    workers: usize,
+    tasks: &[T],
+    f: impl Fn(&T) -> R + Sync,
+) -> Vec<Option<R>> {
+    let next = AtomicUsize::new(0);
+    let slots: Vec<Mutex<Option<R>>> = tasks.iter().map(|_| Mutex::new(None)).collect();
+    pool.scope(|s| {
+        for _ in 0..workers.min(tasks.len()) {
+            s.spawn(|_| {
+                loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(t) = tasks.get(i) else { break };
+                    let r = f(t);
+                    if let Ok(mut slot) = slots[i].lock() {
+                        *slot = Some(r);
+                    }
+                }
+            });
+        }
+    });
+    slots
+        .into_iter()
+        .map(|m| m.into_inner().ok().flatten())
+        .collect()
 }
 
 /// The work list of `cells` (finished (arm, seed) pairs skipped and counted) and their
@@ -859,6 +888,41 @@ pub fn resolve_policies(spec: &mut SweepSpec, base: &Path) {
             && let Some(r) = resolve(path)
         {
             *path = r;
+        }
+    }
+}
+
+#[cfg(test)]
+mod order_tests {
+    use super::*;
+
+    /// Tasks start in list order: the task at position `k` of the start log was taken
+    /// when it was among the first `k + workers` (a task can start only once those ahead
+    /// of it are taken). Halving the list, as `par_iter` does, starts task `n / 2` second.
+    #[test]
+    fn tasks_start_in_list_order_and_results_keep_it() {
+        for workers in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(workers)
+                .build()
+                .expect("pool");
+            let tasks: Vec<usize> = (0..24).collect();
+            let log = Mutex::new(Vec::new());
+            let out = run_in_order(&pool, workers, &tasks, |&t| {
+                log.lock().expect("log").push(t);
+                std::thread::sleep(std::time::Duration::from_millis(1 + (t % 3) as u64));
+                t * 10
+            });
+            let log = log.into_inner().expect("log");
+            assert_eq!(log.len(), tasks.len(), "every task ran once");
+            for (k, &t) in log.iter().enumerate() {
+                assert!(
+                    t < k + workers,
+                    "workers {workers}: task {t} started {k}th: {log:?}"
+                );
+            }
+            let want: Vec<Option<usize>> = tasks.iter().map(|t| Some(t * 10)).collect();
+            assert_eq!(out, want);
         }
     }
 }

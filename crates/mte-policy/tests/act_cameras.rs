@@ -112,6 +112,37 @@ fn the_config_orders_and_checks_its_cameras() {
         .map(|(n, _)| n)
         .collect();
     assert_eq!(names[1], WRIST_CAMERA);
+    // robomimic's names (agentview first in name order, the eye-in-hand camera second):
+    // the eye-in-hand camera is the wrist camera, after the scene camera.
+    let mut robomimic = config();
+    let w = robomimic
+        .input_features
+        .remove(WRIST_CAMERA)
+        .expect("wrist");
+    let s = robomimic
+        .input_features
+        .remove("observation.image")
+        .expect("scene");
+    robomimic
+        .input_features
+        .insert("observation.images.robot0_eye_in_hand_image".into(), w);
+    robomimic
+        .input_features
+        .insert("observation.images.zz_agentview".into(), s);
+    robomimic.validate().expect("robomimic's camera names");
+    let names: Vec<String> = robomimic
+        .image_features()
+        .expect("cameras")
+        .into_iter()
+        .map(|(n, _)| n)
+        .collect();
+    assert_eq!(
+        names,
+        [
+            "observation.images.zz_agentview",
+            "observation.images.robot0_eye_in_hand_image"
+        ]
+    );
     let refused = |c: ActConfig, what: &str| {
         let e = c.validate().expect_err(what).to_string();
         assert!(e.contains("input_features"), "{what}: {e}");

@@ -334,3 +334,61 @@ fn training_batches_carry_both_cameras_and_a_dataset_without_the_wrist_is_refuse
     let e = sample_batch(&policy, &d, &win, 3, &mut rng, true).expect_err("no wrist frames");
     assert!(e.to_string().contains("observation.images.wrist"), "{e}");
 }
+
+/// `c` with its cameras renamed: the scene camera to `scene`, the wrist camera to `wrist`.
+fn renamed(c: &DiffusionConfig, scene: &str, wrist: &str) -> DiffusionConfig {
+    let mut c = c.clone();
+    let s = c.input_features.remove("observation.image").expect("scene");
+    let w = c.input_features.remove(WRIST_CAMERA).expect("wrist");
+    c.input_features.insert(scene.into(), s);
+    c.input_features.insert(wrist.into(), w);
+    c
+}
+
+#[test]
+fn a_policy_naming_its_cameras_as_robomimic_does_is_fed_like_mtes_own() {
+    let (scene, wrist) = (
+        "observation.images.agentview_image",
+        "observation.images.robot0_eye_in_hand_image",
+    );
+    for separate in [false, true] {
+        let (policy, _) = tiny(separate);
+        let c = renamed(policy.config(), scene, wrist);
+        c.validate().expect("robomimic's camera names");
+        assert_eq!(c.cameras(), vec![scene, wrist]);
+        assert!(c.has_wrist_camera());
+        let mut s = stats();
+        let img = s.remove("observation.image").expect("scene stats");
+        let wst = s.remove(WRIST_CAMERA).expect("wrist stats");
+        s.insert(scene.into(), img);
+        s.insert(wrist.into(), wst);
+        let vm = VarMap::new();
+        let vb = mte_policy::init::seeded_var_builder(&vm, 7, DType::F32, &Device::Cpu);
+        let other = DiffusionPolicy::new(c, s, vb).expect("policy");
+        assert_eq!(other.n_cameras(), 2);
+        let h = [obs(0), obs(1)];
+        let a = policy
+            .global_cond(&policy.obs_batch(&[&h]).expect("batch"))
+            .expect("cond");
+        let b = other
+            .global_cond(&other.obs_batch(&[&h]).expect("batch"))
+            .expect("cond");
+        // The same weights, statistics and frames under other names: the same values.
+        assert_eq!(common::max_abs_diff(&a, &b), 0.0, "separate {separate}");
+    }
+    // Each wrist alias is recognised; two wrist cameras, or a wrist camera alone, are not
+    // a pair mte can feed.
+    let base = config(false);
+    for alias in mte_policy::config::WRIST_CAMERA_NAMES {
+        let c = renamed(&base, "observation.images.top", alias);
+        c.validate().expect(alias);
+        assert_eq!(c.cameras()[1], alias);
+    }
+    let two_wrists = renamed(&base, "observation.images.wrist_image", WRIST_CAMERA);
+    let e = two_wrists.validate().expect_err("two wrist cameras");
+    assert!(e.to_string().contains("wrist camera"), "{e}");
+    let mut alone = renamed(&base, "observation.images.top", wrist);
+    alone.input_features.remove("observation.images.top");
+    let e = alone.validate().expect_err("a wrist camera alone");
+    assert!(e.to_string().contains("scene camera"), "{e}");
+}

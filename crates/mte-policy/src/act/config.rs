@@ -321,7 +321,8 @@ impl ActConfig {
 
     /// The cameras `(name, [3, H, W])` in the order their tokens enter the encoder
     /// (LeRobot's: its config's order): the scene camera, fed from `Observation::image`
-    /// whatever its name, then [`WRIST_CAMERA`] (`Observation::wrist_image`).
+    /// whatever its name, then the wrist camera (`Observation::wrist_image`; named one of
+    /// [`WRIST_CAMERA_NAMES`](crate::config::WRIST_CAMERA_NAMES)).
     ///
     /// # Errors
     /// A camera whose shape is not three channels of at least 1 x 1 px.

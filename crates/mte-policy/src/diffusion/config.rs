@@ -168,8 +168,26 @@ pub enum ObsKind {
 }
 
 /// The wrist camera's feature name (LeRobot's `observation.images.<camera>` form; the
-/// name `mte data generate --obs pixels,wrist` writes).
+/// name `mte data generate --obs pixels,wrist` writes and mte's trainers use).
 pub const WRIST_CAMERA: &str = "observation.images.wrist";
+
+/// Every feature name a loaded checkpoint may give its wrist (eye-in-hand) camera, fed
+/// from `Observation::wrist_image`: mte's [`WRIST_CAMERA`]; `wrist_image`, the name
+/// LeRobot's LIBERO datasets use; and robomimic's observation key
+/// `robot0_eye_in_hand_image` and robosuite's camera name `robot0_eye_in_hand`, the names
+/// a policy trained on robomimic data (as Diffusion Policy trains it) carries. Any other
+/// camera is a scene camera.
+pub const WRIST_CAMERA_NAMES: [&str; 4] = [
+    WRIST_CAMERA,
+    "observation.images.wrist_image",
+    "observation.images.robot0_eye_in_hand_image",
+    "observation.images.robot0_eye_in_hand",
+];
+
+/// Whether the feature `name` is a wrist camera (one of [`WRIST_CAMERA_NAMES`]).
+pub fn is_wrist_camera(name: &str) -> bool {
+    WRIST_CAMERA_NAMES.contains(&name)
+}
 
 /// torchvision ResNet-18's stem width.
 pub const RESNET18_WIDTH: usize = 64;
@@ -264,25 +282,28 @@ pub(crate) fn action_dim_of(
     }
 }
 
-/// mte's camera rule, for every policy class: one camera of any name (the scene camera, fed
-/// from `Observation::image`), or the scene camera and [`WRIST_CAMERA`]; every camera of
-/// one shape (the bridge renders the wrist camera at the scene camera's size; LeRobot's
-/// Diffusion Policy requires it too). `cameras` are `(name, shape)` in mte's order.
+/// mte's camera rule, for every policy class: one scene camera of any name (fed from
+/// `Observation::image`), or a scene camera and a wrist camera (one of
+/// [`WRIST_CAMERA_NAMES`]); every camera of one shape (the bridge renders the wrist camera
+/// at the scene camera's size; LeRobot's Diffusion Policy requires it too). `cameras` are
+/// `(name, shape)` in mte's order.
 pub(crate) fn check_cameras(cameras: &[(&str, &[usize])]) -> Result<(), PolicyError> {
     let names: Vec<&str> = cameras.iter().map(|(n, _)| *n).collect();
-    if names == [WRIST_CAMERA] {
+    if names.len() == 1 && is_wrist_camera(names[0]) {
         return Err(config_err(
             "input_features",
             &names,
             "a scene camera beside the wrist camera",
         ));
     }
-    let wrist_pair = names.len() == 2 && names[1] == WRIST_CAMERA;
+    let wrist_pair = names.len() == 2 && !is_wrist_camera(names[0]) && is_wrist_camera(names[1]);
     if names.len() > 1 && !wrist_pair {
         return Err(config_err(
             "input_features",
             &names,
-            format!("one camera, or a scene camera and {WRIST_CAMERA}"),
+            format!(
+                "one camera, or a scene camera and one wrist camera (named one of {WRIST_CAMERA_NAMES:?})"
+            ),
         ));
     }
     if let Some(&(first, shape)) = cameras.first()
@@ -300,7 +321,7 @@ pub(crate) fn check_cameras(cameras: &[(&str, &[usize])]) -> Result<(), PolicyEr
 /// The sort key of mte's camera order: the wrist camera last, the others (a stable sort)
 /// in name order.
 pub(crate) fn wrist_last(name: &str) -> bool {
-    name == WRIST_CAMERA
+    is_wrist_camera(name)
 }
 
 /// Refuses a `config.json` at `path` whose `input_features` list the `cameras` in another
@@ -498,8 +519,9 @@ impl DiffusionConfig {
 
     /// The cameras (VISUAL features) in the order their features are concatenated in the
     /// conditioning (LeRobot's `image_features` order): the scene camera, fed from
-    /// `Observation::image` whatever its name, then [`WRIST_CAMERA`] (fed from
-    /// `Observation::wrist_image`) when the policy has it.
+    /// `Observation::image` whatever its name, then the wrist camera (fed from
+    /// `Observation::wrist_image`; named one of [`WRIST_CAMERA_NAMES`]) when the policy
+    /// has it.
     pub fn cameras(&self) -> Vec<&str> {
         let mut names: Vec<&str> = self
             .input_features
@@ -511,11 +533,12 @@ impl DiffusionConfig {
         names
     }
 
-    /// Whether the policy reads the wrist camera ([`WRIST_CAMERA`]).
+    /// Whether the policy reads a wrist camera (a VISUAL feature named one of
+    /// [`WRIST_CAMERA_NAMES`]).
     pub fn has_wrist_camera(&self) -> bool {
         self.input_features
-            .get(WRIST_CAMERA)
-            .is_some_and(|f| f.kind == FeatureType::Visual)
+            .iter()
+            .any(|(n, f)| f.kind == FeatureType::Visual && is_wrist_camera(n))
     }
 
     /// This config with the wrist camera added beside the scene camera (same shape), or

@@ -243,9 +243,8 @@ fn train_config(steps: usize, batch_size: usize, freeze_backbone: bool) -> ActTr
         batch_size,
         seed: 1,
         checkpoint_every: 100,
-        init: None,
-        backbone_from: None,
         freeze_backbone,
+        ..Default::default()
     }
 }
 

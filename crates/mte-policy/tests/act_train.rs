@@ -72,9 +72,7 @@ fn trains_checkpoints_loads_and_resumes() {
         batch_size: 16,
         seed: 3,
         checkpoint_every: 30,
-        init: None,
-        backbone_from: None,
-        freeze_backbone: false,
+        ..Default::default()
     };
     let mut trace = Vec::new();
     let r = train(&data(), tiny(), &tc, dir.path(), &mut |_, l1, _| {
@@ -200,9 +198,7 @@ fn bad_settings_are_typed_errors() {
         batch_size: 4,
         seed: 0,
         checkpoint_every: 0,
-        init: None,
-        backbone_from: None,
-        freeze_backbone: false,
+        ..Default::default()
     };
     let e = train(&data(), tiny(), &tc, dir.path(), &mut |_, _, _| {}).expect_err("no steps");
     assert!(e.to_string().contains("steps"), "{e}");

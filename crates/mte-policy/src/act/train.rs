@@ -52,6 +52,23 @@ pub struct ActTrainConfig {
     pub freeze_backbone: bool,
 }
 
+/// `mte train act`'s defaults: 20,000 steps of 64 frames, seed 0, a checkpoint every 2,000
+/// steps, from the seeded initialisation with a trained backbone. (LeRobot's ACT recipe is
+/// 100,000 steps at batch 8; mte's `cpu` presets train on fewer, larger batches.)
+impl Default for ActTrainConfig {
+    fn default() -> Self {
+        Self {
+            steps: 20_000,
+            batch_size: 64,
+            seed: 0,
+            checkpoint_every: 2_000,
+            init: None,
+            backbone_from: None,
+            freeze_backbone: false,
+        }
+    }
+}
+
 impl ActTrainConfig {
     /// Check every field.
     pub fn validate(&self) -> Result<(), PolicyError> {
@@ -605,9 +622,9 @@ mod tests {
             batch_size: 4,
             seed: 5,
             checkpoint_every: 0,
-            init: None,
             backbone_from: Some(dp.clone()),
             freeze_backbone: true,
+            ..Default::default()
         };
         let out = dir.path().join("run");
         let r = train(&data, c.clone(), &tc, &out, &mut |_, _, _| {}).expect("train");
@@ -673,9 +690,7 @@ mod tests {
             batch_size: 4,
             seed: 5,
             checkpoint_every: 0,
-            init: None,
-            backbone_from: None,
-            freeze_backbone: false,
+            ..Default::default()
         };
         train(&data, c.clone(), &tc, dir.path(), &mut |_, _, _| {}).expect("train");
         let saved = candle_core::safetensors::load(

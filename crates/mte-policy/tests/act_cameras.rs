@@ -87,15 +87,19 @@ fn normalised(frames: &[Vec<u8>], name: &str) -> Tensor {
     n.apply(&x).expect("normalised")
 }
 
-#[test]
-fn the_config_orders_and_checks_its_cameras() {
-    let c = config();
-    let names: Vec<String> = c
-        .image_features()
+/// The config's cameras in the order their tokens enter the encoder.
+fn camera_names(c: &ActConfig) -> Vec<String> {
+    c.image_features()
         .expect("cameras")
         .into_iter()
         .map(|(n, _)| n)
-        .collect();
+        .collect()
+}
+
+#[test]
+fn the_config_orders_and_checks_its_cameras() {
+    let c = config();
+    let names = camera_names(&c);
     assert_eq!(
         names,
         vec!["observation.image".to_string(), WRIST_CAMERA.to_string()]
@@ -105,15 +109,10 @@ fn the_config_orders_and_checks_its_cameras() {
     let late = config()
         .with_camera("observation.images.zz", [3, SIDE, SIDE])
         .with_wrist_camera();
-    let names: Vec<String> = late
-        .image_features()
-        .expect("cameras")
-        .into_iter()
-        .map(|(n, _)| n)
-        .collect();
+    let names = camera_names(&late);
     assert_eq!(names[1], WRIST_CAMERA);
-    // robomimic's names (agentview first in name order, the eye-in-hand camera second):
-    // the eye-in-hand camera is the wrist camera, after the scene camera.
+    // robomimic's eye-in-hand name is a wrist camera: it comes after the scene camera, even
+    // one whose name sorts after it.
     let mut robomimic = config();
     let w = robomimic
         .input_features
@@ -130,12 +129,7 @@ fn the_config_orders_and_checks_its_cameras() {
         .input_features
         .insert("observation.images.zz_agentview".into(), s);
     robomimic.validate().expect("robomimic's camera names");
-    let names: Vec<String> = robomimic
-        .image_features()
-        .expect("cameras")
-        .into_iter()
-        .map(|(n, _)| n)
-        .collect();
+    let names = camera_names(&robomimic);
     assert_eq!(
         names,
         [

@@ -178,6 +178,11 @@ pub struct EvalPolicyArgs {
     /// policy predicting fewer rows: fewer candidates per step. Default: all of them.
     #[arg(long)]
     pub span: Option<usize>,
+    /// A corruption, as JSON in the run manifest's form, e.g. `{"fault": {"kind": "blank"},
+    /// "schedule": {"kind": "burst", "q": 2, "phase": 3}}`; default: clean. The candidate
+    /// statistics then also measure each corrupted candidate against the clean ones.
+    #[arg(long, value_name = "JSON")]
+    pub corruption: Option<String>,
     /// Where the policy runs: `cpu`, or `cuda` / `cuda:N` in a build with the `cuda` feature.
     #[arg(long, default_value = "cpu")]
     pub device: mte_policy::ComputeDevice,

@@ -317,6 +317,71 @@ fn bundled_image_policies_run_an_episode() {
     }
 }
 
+/// `eval policy --corruption` runs the episode under the corruption (its candidate
+/// statistics then measure corrupted candidates against clean ones, and the JSON names it);
+/// malformed JSON, a bad field and a burst longer than its period are refused by name.
+#[test]
+fn eval_policy_takes_a_corruption_and_refuses_bad_ones() {
+    let eval = |corruption: &str| {
+        let mut c = mte();
+        c.args(["--format", "json", "eval", "policy", "--episodes", "1"])
+            .args([
+                "--max-steps",
+                "40",
+                "--stride",
+                "2",
+                "--execution",
+                "median",
+            ])
+            .args(["--corruption", corruption, "--checkpoint"])
+            .arg(bundled());
+        c
+    };
+    let blank =
+        r#"{"fault": {"kind": "blank"}, "schedule": {"kind": "burst", "q": 2, "phase": 3}}"#;
+    let v = json_stdout(&mut eval(blank));
+    assert_eq!(v["corruption"]["fault"]["kind"], "blank", "{v}");
+    let steps = v["candidates"]["corrupted_steps"]
+        .as_u64()
+        .expect("counted");
+    assert!(steps > 0, "a blank burst in 40 steps at h = 2: {v}");
+    let out = v["candidates"]["corrupted_outside_bracket"]
+        .as_f64()
+        .expect("fraction");
+    assert!((0.0..=1.0).contains(&out), "{v}");
+    let clean = json_stdout(
+        mte()
+            .args(["--format", "json", "eval", "policy", "--episodes", "1"])
+            .args([
+                "--max-steps",
+                "40",
+                "--stride",
+                "2",
+                "--execution",
+                "median",
+                "--checkpoint",
+            ])
+            .arg(bundled()),
+    );
+    assert_eq!(clean["candidates"]["corrupted_steps"], 0, "{clean}");
+    for (bad, needle) in [
+        ("{not json", "expected a corruption as JSON"),
+        (
+            r#"{"fault": {"kind": "blank"}, "schedule": {"kind": "burst", "q": 99}}"#,
+            "burst period 7",
+        ),
+        (
+            r#"{"fault": {"kind": "blank"}, "schedule": {"kind": "bernoulli", "p": 2.0}}"#,
+            "schedule.p",
+        ),
+    ] {
+        eval(bad)
+            .assert()
+            .failure()
+            .stderr(predicate::str::contains(needle));
+    }
+}
+
 /// `--device` is parsed into a device or refused with the accepted names, the JSON says where
 /// the policy ran, and a CUDA device in a build without the `cuda` feature is an error that
 /// says how to get one (nothing falls back to the CPU silently).

@@ -570,6 +570,34 @@ impl CorruptionSpec {
         self.fault.validate()?;
         self.schedule.validate()
     }
+
+    /// Refuses a burst longer than its period: `q` corrupted queries of every `period`
+    /// (default `M_min` of the chunk geometry `t_p`, `t_o`, `h`), so `q <= period`; a longer
+    /// burst would silently equal `q = period`. Other schedules pass.
+    ///
+    /// # Errors
+    /// `h` that the geometry refuses, or `q` above the period.
+    pub fn check_burst(&self, t_p: usize, t_o: usize, h: usize) -> Result<(), CorruptionError> {
+        let Schedule::Burst { q, period, .. } = self.schedule else {
+            return Ok(());
+        };
+        let geometry = mte_ensemble::ChunkGeometry::new(t_p, t_o, h).map_err(|e| {
+            CorruptionError::new(
+                "h",
+                h,
+                format!("a stride the policy supports (T_p {t_p}, T_o {t_o}): {e}"),
+            )
+        })?;
+        let p = period.unwrap_or(geometry.m_min());
+        if q > p {
+            return Err(CorruptionError::new(
+                "q",
+                q,
+                format!("at most the burst period {p} (M_min of T_p {t_p}, T_o {t_o}, h {h})"),
+            ));
+        }
+        Ok(())
+    }
 }
 
 impl fmt::Display for CorruptionSpec {

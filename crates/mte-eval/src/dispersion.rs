@@ -30,6 +30,15 @@ pub struct CandidateSpread {
     split_steps: u64,
     /// Per age `k >= 1`: the summed distance from the newest candidate, and the count.
     age: Vec<(f64, u64)>,
+    /// Steps with a corrupted candidate and at least two clean ones.
+    corrupted_steps: u64,
+    /// Summed over those steps: the clean candidates' RMS distance from their median.
+    clean_spread: f64,
+    /// Per corrupted candidate at those steps: its distance from the clean candidates'
+    /// coordinate-wise median, and whether it lies outside their bracket.
+    corrupted: Vec<(f64, bool)>,
+    /// Per corrupted candidate where the clean spread is not zero: distance over spread.
+    outlyingness: Vec<f64>,
     scratch: Vec<f64>,
     mean: Vec<f64>,
     median: Vec<f64>,
@@ -60,10 +69,27 @@ pub struct SpreadSummary {
     /// Mean distance of a candidate of age `k` (queries older than the newest) from the
     /// newest, for `k = 1, 2, ...` (entry `k - 1`).
     pub by_age: Vec<f64>,
+    /// Steps with at least one candidate from a corrupted query and at least two clean
+    /// ones: the steps where the corrupted candidates are measured against the clean.
+    pub corrupted_steps: u64,
+    /// At those steps, the clean candidates' RMS distance from their coordinate-wise median.
+    pub clean_spread: f64,
+    /// Mean distance of a corrupted candidate from the clean candidates' coordinate-wise
+    /// median.
+    pub corrupted_to_clean_median: f64,
+    /// Median over corrupted candidates of that distance over the step's clean spread (steps
+    /// whose clean spread is zero left out): how many clean spreads a corrupted candidate
+    /// lies from the clean ones. Near 1 it hides among them; far above, a rank statistic can
+    /// reject it and a mean is dragged by it.
+    pub corrupted_outlyingness: f64,
+    /// Fraction of corrupted candidates outside the clean candidates' coordinate-wise
+    /// bracket on at least one coordinate.
+    pub corrupted_outside_bracket: f64,
 }
 
 impl EpisodeObserver for CandidateSpread {
     fn on_step(&mut self, e: &StepEvent<'_>) {
+        self.corrupted_against_clean(e);
         let m = e.candidates.len();
         if m < 2 {
             return;
@@ -117,9 +143,47 @@ impl CandidateSpread {
         }
     }
 
+    /// Measures each corrupted candidate of `e` against its clean ones (at least two).
+    fn corrupted_against_clean(&mut self, e: &StepEvent<'_>) {
+        let m = e.candidates.len();
+        let flagged = |i: usize| e.corrupted.get(i).copied().unwrap_or(false);
+        let clean: Vec<&[f32]> = (0..m)
+            .filter(|&i| !flagged(i))
+            .map(|i| e.candidates.row(i))
+            .collect();
+        if clean.len() < 2 || clean.len() == m {
+            return;
+        }
+        self.centres(&clean);
+        let spread = (clean
+            .iter()
+            .map(|r| dist(r, &self.median).powi(2))
+            .sum::<f64>()
+            / clean.len() as f64)
+            .sqrt();
+        self.corrupted_steps += 1;
+        self.clean_spread += spread;
+        for row in (0..m).filter(|&i| flagged(i)).map(|i| e.candidates.row(i)) {
+            let d = dist(row, &self.median);
+            let outside = row.iter().enumerate().any(|(j, &v)| {
+                let (lo, hi) = clean
+                    .iter()
+                    .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), r| {
+                        (lo.min(r[j]), hi.max(r[j]))
+                    });
+                v < lo || v > hi
+            });
+            self.corrupted.push((d, outside));
+            if spread > 0.0 {
+                self.outlyingness.push(d / spread);
+            }
+        }
+    }
+
     /// The means so far.
     pub fn summary(&self) -> SpreadSummary {
         let n = self.steps.max(1) as f64;
+        let k = self.corrupted.len().max(1) as f64;
         SpreadSummary {
             steps: self.steps,
             spread: self.spread / n,
@@ -130,8 +194,23 @@ impl CandidateSpread {
             newest_to_median: self.newest_to_median / n,
             split_fraction: self.split_steps as f64 / n,
             by_age: self.age.iter().map(|&(s, c)| s / c.max(1) as f64).collect(),
+            corrupted_steps: self.corrupted_steps,
+            clean_spread: self.clean_spread / self.corrupted_steps.max(1) as f64,
+            corrupted_to_clean_median: self.corrupted.iter().map(|c| c.0).sum::<f64>() / k,
+            corrupted_outlyingness: median_of(&self.outlyingness),
+            corrupted_outside_bracket: self.corrupted.iter().filter(|c| c.1).count() as f64 / k,
         }
     }
+}
+
+/// The median of `v` (the mean of the two middle values for an even count); 0 when empty.
+fn median_of(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    0.5 * (s[(s.len() - 1) / 2] + s[s.len() / 2])
 }
 
 /// Euclidean distance between two points (rows of `f32` or `f64`).
@@ -184,15 +263,18 @@ mod tests {
     use super::*;
 
     fn observe(spread: &mut CandidateSpread, flat: &[f32]) {
-        let c = Candidates::new(flat, 2).expect("candidates");
-        let flags = vec![false; c.len()];
+        observe_flagged(spread, flat, 2, &vec![false; flat.len() / 2]);
+    }
+
+    fn observe_flagged(spread: &mut CandidateSpread, flat: &[f32], d: usize, flags: &[bool]) {
+        let c = Candidates::new(flat, d).expect("candidates");
         spread.on_step(&StepEvent {
             tau: 0,
             candidates: c,
-            corrupted: &flags,
-            action: &flat[..2],
+            corrupted: flags,
+            action: &flat[..d],
             m: c.len(),
-            q: 0,
+            q: flags.iter().filter(|&&f| f).count(),
             report: None,
             bracket: None,
         });
@@ -225,5 +307,28 @@ mod tests {
         assert_eq!(r.split_fraction, 0.0);
         assert_eq!(r.mean_to_median, 0.0);
         assert_eq!(r.by_age, vec![25.0, 50.0, 75.0, 100.0]);
+    }
+
+    #[test]
+    fn corrupted_candidates_are_measured_against_the_clean_ones_only() {
+        let mut s = CandidateSpread::default();
+        // 1-D. Clean 0, 2, 4 (median 2, RMS spread sqrt(8 / 3)); corrupted 10: 8 away,
+        // outside the bracket [0, 4].
+        observe_flagged(&mut s, &[0., 10., 2., 4.], 1, &[false, true, false, false]);
+        // Clean 0, 2, 4 again; corrupted 3: 1 away, inside.
+        observe_flagged(&mut s, &[3., 0., 2., 4.], 1, &[true, false, false, false]);
+        // One clean candidate: nothing to measure against, not counted.
+        observe_flagged(&mut s, &[7., 1.], 1, &[true, false]);
+        // No corrupted candidate: not counted.
+        observe_flagged(&mut s, &[0., 2., 4.], 1, &[false; 3]);
+        let r = s.summary();
+        let sd = (8.0f64 / 3.0).sqrt();
+        assert_eq!(r.corrupted_steps, 2);
+        assert!((r.clean_spread - sd).abs() < 1e-12, "{r:?}");
+        assert!((r.corrupted_to_clean_median - 4.5).abs() < 1e-12);
+        assert!((r.corrupted_outlyingness - 0.5 * (8.0 / sd + 1.0 / sd)).abs() < 1e-12);
+        assert_eq!(r.corrupted_outside_bracket, 0.5);
+        // The candidate statistics of the same steps still take every candidate.
+        assert_eq!(r.steps, 4);
     }
 }

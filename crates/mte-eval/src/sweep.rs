@@ -840,32 +840,11 @@ fn run_bridged(
     });
 }
 
-/// Refuses a burst longer than its period: `q` corrupted queries of every `period` (default
-/// `M_min` of the policy's geometry at the cell's stride), so `q <= period`; a longer burst
-/// would silently equal `q = period`.
+/// [`CorruptionSpec::check_burst`] for cell `c` of a policy of `t_p`, `t_o`, naming the cell.
 fn check_burst(c: &CellSpec, t_p: usize, t_o: usize) -> Result<(), SweepError> {
-    let Schedule::Burst { q, period, .. } = c.corruption.schedule else {
-        return Ok(());
-    };
-    let geometry = mte_ensemble::ChunkGeometry::new(t_p, t_o, c.h).map_err(|e| {
-        field(
-            "h",
-            c.h,
-            format!("a stride the policy supports (T_p {t_p}, T_o {t_o}): {e}"),
-        )
-    })?;
-    let p = period.unwrap_or(geometry.m_min());
-    if q > p {
-        return Err(field(
-            "q",
-            q,
-            format!(
-                "at most the burst period {p} (M_min of T_p {t_p}, T_o {t_o}, h {}; cell {})",
-                c.h, c.id
-            ),
-        ));
-    }
-    Ok(())
+    c.corruption
+        .check_burst(t_p, t_o, c.h)
+        .map_err(|e| field(e.field, e.value, format!("{} (cell {})", e.expected, c.id)))
 }
 
 fn poisoned() -> SweepError {

@@ -28,6 +28,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
     let p = mte_eval::sweep::load_named_policy(&a.checkpoint, &device)
         .with_context(|| format!("loading {} on {}", a.checkpoint.display(), a.device))?;
     let needs = p.needs();
+    let corruption = corruption_of(a, p.horizon(), p.n_obs_steps())?;
     let bar = Bar::new(!cli.no_progress && !cli.quiet);
     bar.start("episodes", a.episodes as u64);
     let t0 = std::time::Instant::now();
@@ -50,7 +51,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
             h: a.stride,
             max_steps: a.max_steps,
             execution,
-            corruption: &CorruptionSpec::CLEAN,
+            corruption: &corruption,
             noise_seed: a.noise_seed,
             sampling: a.sampling.into(),
             monitors: &[],
@@ -75,7 +76,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
         Format::Json => writeln!(
             so,
             "{}",
-            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "execution": a.execution, "stride": a.stride, "sampling": a.sampling, "candidates": spread, "device": a.device.to_string(), "machine": mte_eval::machine::Machine::detect().with_policies_on(a.device)})
+            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "execution": a.execution, "stride": a.stride, "sampling": a.sampling, "corruption": corruption, "candidates": spread, "device": a.device.to_string(), "machine": mte_eval::machine::Machine::detect().with_policies_on(a.device)})
         )?,
         Format::Text => {
             writeln!(
@@ -87,6 +88,18 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
                 format!("{:?}", a.sampling).to_lowercase(),
                 a.device,
             )?;
+            if spread.corrupted_steps > 0 {
+                writeln!(
+                    so,
+                    "corrupted candidates at {} steps: {:.4} from the clean candidates' median, whose \
+                     spread is {:.4} (median ratio {:.2}); outside the clean bracket: {:.1}%",
+                    spread.corrupted_steps,
+                    spread.corrupted_to_clean_median,
+                    spread.clean_spread,
+                    spread.corrupted_outlyingness,
+                    100.0 * spread.corrupted_outside_bracket
+                )?;
+            }
             if spread.steps > 0 {
                 let ages: Vec<String> = spread.by_age.iter().map(|v| format!("{v:.1}")).collect();
                 writeln!(
@@ -108,4 +121,18 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// `--corruption`, parsed and checked against the policy's chunk geometry (`t_p`, `t_o`)
+/// at `--stride`; clean without it.
+fn corruption_of(a: &EvalPolicyArgs, t_p: usize, t_o: usize) -> Result<CorruptionSpec> {
+    let Some(text) = &a.corruption else {
+        return Ok(CorruptionSpec::CLEAN);
+    };
+    let c: CorruptionSpec = serde_json::from_str(text)
+        .with_context(|| format!("--corruption {text:?}: expected a corruption as JSON"))?;
+    c.validate()
+        .and_then(|()| c.check_burst(t_p, t_o, a.stride))
+        .with_context(|| format!("--corruption {text:?}"))?;
+    Ok(c)
 }

@@ -322,7 +322,8 @@ fn bundled_image_policies_run_an_episode() {
 /// malformed JSON, a bad field and a burst longer than its period are refused by name.
 #[test]
 fn eval_policy_takes_a_corruption_and_refuses_bad_ones() {
-    let eval = |corruption: &str| {
+    // An episode of 40 steps at h = 2 under the median, with `corruption` if given.
+    let eval = |corruption: Option<&str>| {
         let mut c = mte();
         c.args(["--format", "json", "eval", "policy", "--episodes", "1"])
             .args([
@@ -332,14 +333,16 @@ fn eval_policy_takes_a_corruption_and_refuses_bad_ones() {
                 "2",
                 "--execution",
                 "median",
-            ])
-            .args(["--corruption", corruption, "--checkpoint"])
-            .arg(bundled());
+            ]);
+        if let Some(json) = corruption {
+            c.args(["--corruption", json]);
+        }
+        c.arg("--checkpoint").arg(bundled());
         c
     };
     let blank =
         r#"{"fault": {"kind": "blank"}, "schedule": {"kind": "burst", "q": 2, "phase": 3}}"#;
-    let v = json_stdout(&mut eval(blank));
+    let v = json_stdout(&mut eval(Some(blank)));
     assert_eq!(v["corruption"]["fault"]["kind"], "blank", "{v}");
     let steps = v["candidates"]["corrupted_steps"]
         .as_u64()
@@ -349,20 +352,7 @@ fn eval_policy_takes_a_corruption_and_refuses_bad_ones() {
         .as_f64()
         .expect("fraction");
     assert!((0.0..=1.0).contains(&out), "{v}");
-    let clean = json_stdout(
-        mte()
-            .args(["--format", "json", "eval", "policy", "--episodes", "1"])
-            .args([
-                "--max-steps",
-                "40",
-                "--stride",
-                "2",
-                "--execution",
-                "median",
-                "--checkpoint",
-            ])
-            .arg(bundled()),
-    );
+    let clean = json_stdout(&mut eval(None));
     assert_eq!(clean["candidates"]["corrupted_steps"], 0, "{clean}");
     for (bad, needle) in [
         ("{not json", "expected a corruption as JSON"),
@@ -375,7 +365,7 @@ fn eval_policy_takes_a_corruption_and_refuses_bad_ones() {
             "schedule.p",
         ),
     ] {
-        eval(bad)
+        eval(Some(bad))
             .assert()
             .failure()
             .stderr(predicate::str::contains(needle));

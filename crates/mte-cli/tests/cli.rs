@@ -348,6 +348,8 @@ fn eval_policy_takes_a_corruption_and_refuses_bad_ones() {
         .as_u64()
         .expect("counted");
     assert!(steps > 0, "a blank burst in 40 steps at h = 2: {v}");
+    // The one episode's own statistics are the run's.
+    assert_eq!(v["candidates_by_episode"][0], v["candidates"], "{v}");
     let out = v["candidates"]["corrupted_outside_bracket"]
         .as_f64()
         .expect("fraction");

@@ -180,6 +180,30 @@ impl CandidateSpread {
         }
     }
 
+    /// Adds what `other` observed to `self`, as if `self` had observed it too (a run's
+    /// total from per-episode observers).
+    pub fn merge(&mut self, other: &CandidateSpread) {
+        self.steps += other.steps;
+        self.spread += other.spread;
+        self.mean_to_median += other.mean_to_median;
+        self.mean_to_nearest += other.mean_to_nearest;
+        self.median_to_nearest += other.median_to_nearest;
+        self.newest_to_mean += other.newest_to_mean;
+        self.newest_to_median += other.newest_to_median;
+        self.split_steps += other.split_steps;
+        if self.age.len() < other.age.len() {
+            self.age.resize(other.age.len(), (0.0, 0));
+        }
+        for (a, b) in self.age.iter_mut().zip(&other.age) {
+            a.0 += b.0;
+            a.1 += b.1;
+        }
+        self.corrupted_steps += other.corrupted_steps;
+        self.clean_spread += other.clean_spread;
+        self.corrupted.extend_from_slice(&other.corrupted);
+        self.outlyingness.extend_from_slice(&other.outlyingness);
+    }
+
     /// The means so far.
     pub fn summary(&self) -> SpreadSummary {
         let n = self.steps.max(1) as f64;
@@ -330,5 +354,24 @@ mod tests {
         assert_eq!(r.corrupted_outside_bracket, 0.5);
         // The candidate statistics of the same steps still take every candidate.
         assert_eq!(r.steps, 4);
+    }
+
+    #[test]
+    fn merging_per_episode_observers_equals_one_observer_of_all() {
+        let steps: [(&[f32], &[bool]); 3] = [
+            (&[0., 10., 2., 4.], &[false, true, false, false]),
+            (&[3., 0., 2., 4., 9.], &[true, false, false, false, true]),
+            (&[0., 1., 5.], &[false, false, false]),
+        ];
+        let mut all = CandidateSpread::default();
+        let mut merged = CandidateSpread::default();
+        for (flat, flags) in steps {
+            observe_flagged(&mut all, flat, 1, flags);
+            let mut one = CandidateSpread::default();
+            observe_flagged(&mut one, flat, 1, flags);
+            merged.merge(&one);
+        }
+        assert_eq!(merged.summary(), all.summary());
+        assert_eq!(all.summary().corrupted_steps, 2);
     }
 }

@@ -34,6 +34,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
     let mut out = Vec::new();
     let mut spread = CandidateSpread::default();
+    let mut by_episode = Vec::new();
     // Native PushT runs through `run_episode_observed`; any other target gets one worker.
     let mut bridged = (!a.env.is_pusht())
         .then(|| {
@@ -57,11 +58,14 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
             monitors: &[],
             span: a.span,
         };
+        let mut this = CandidateSpread::default();
         let record = match bridged.as_mut() {
-            None => run_episode_observed(p.as_ref(), &spec, &mut spread)?,
+            None => run_episode_observed(p.as_ref(), &spec, &mut this)?,
             // One worker serves every episode: each starts with a seeded reset.
-            Some(env) => run_episode_in(env.as_mut(), p.as_ref(), &spec, &mut spread)?,
+            Some(env) => run_episode_in(env.as_mut(), p.as_ref(), &spec, &mut this)?,
         };
+        spread.merge(&this);
+        by_episode.push(this.summary());
         out.push(record);
         bar.advance(1);
     }
@@ -76,7 +80,7 @@ pub fn policy(cli: &Cli, a: &EvalPolicyArgs) -> Result<()> {
         Format::Json => writeln!(
             so,
             "{}",
-            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "execution": a.execution, "stride": a.stride, "sampling": a.sampling, "corruption": corruption, "candidates": spread, "device": a.device.to_string(), "machine": mte_eval::machine::Machine::detect().with_policies_on(a.device)})
+            serde_json::json!({"episodes": out, "success_rate": succ as f64 / n, "mean_max_coverage": mean_max, "seconds": secs, "horizon": p.horizon(), "execution": a.execution, "stride": a.stride, "sampling": a.sampling, "corruption": corruption, "candidates": spread, "candidates_by_episode": by_episode, "device": a.device.to_string(), "machine": mte_eval::machine::Machine::detect().with_policies_on(a.device)})
         )?,
         Format::Text => {
             writeln!(

@@ -102,13 +102,8 @@ impl EpisodeObserver for CandidateSpread {
                 .map(|r| dist(r, p))
                 .fold(f64::INFINITY, f64::min)
         };
-        let spread = rows
-            .iter()
-            .map(|r| dist(r, &self.median).powi(2))
-            .sum::<f64>()
-            / m as f64;
         self.steps += 1;
-        self.spread += spread.sqrt();
+        self.spread += rms_about(&rows, &self.median);
         self.mean_to_median += dist(&self.mean, &self.median);
         self.mean_to_nearest += near(&self.mean);
         self.median_to_nearest += near(&self.median);
@@ -155,24 +150,25 @@ impl CandidateSpread {
             return;
         }
         self.centres(&clean);
-        let spread = (clean
-            .iter()
-            .map(|r| dist(r, &self.median).powi(2))
-            .sum::<f64>()
-            / clean.len() as f64)
-            .sqrt();
+        let spread = rms_about(&clean, &self.median);
         self.corrupted_steps += 1;
         self.clean_spread += spread;
-        for row in (0..m).filter(|&i| flagged(i)).map(|i| e.candidates.row(i)) {
-            let d = dist(row, &self.median);
-            let outside = row.iter().enumerate().any(|(j, &v)| {
-                let (lo, hi) = clean
+        // The clean bracket, once per step: (lowest, highest) clean value per coordinate.
+        let bracket: Vec<(f32, f32)> = (0..clean[0].len())
+            .map(|j| {
+                clean
                     .iter()
                     .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), r| {
                         (lo.min(r[j]), hi.max(r[j]))
-                    });
-                v < lo || v > hi
-            });
+                    })
+            })
+            .collect();
+        for row in (0..m).filter(|&i| flagged(i)).map(|i| e.candidates.row(i)) {
+            let d = dist(row, &self.median);
+            let outside = row
+                .iter()
+                .zip(&bracket)
+                .any(|(&v, &(lo, hi))| v < lo || v > hi);
             self.corrupted.push((d, outside));
             if spread > 0.0 {
                 self.outlyingness.push(d / spread);
@@ -235,6 +231,11 @@ fn median_of(v: &[f64]) -> f64 {
     let mut s = v.to_vec();
     s.sort_by(f64::total_cmp);
     0.5 * (s[(s.len() - 1) / 2] + s[s.len() / 2])
+}
+
+/// Root-mean-square distance of `rows` from `centre`.
+fn rms_about(rows: &[&[f32]], centre: &[f64]) -> f64 {
+    (rows.iter().map(|r| dist(r, centre).powi(2)).sum::<f64>() / rows.len() as f64).sqrt()
 }
 
 /// Euclidean distance between two points (rows of `f32` or `f64`).

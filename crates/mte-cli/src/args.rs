@@ -789,7 +789,8 @@ pub struct SweepArgs {
     #[arg(long, short, value_name = "DIR")]
     pub out: PathBuf,
     /// Continue a run in `--out`: finished episodes are skipped. The spec may append seeds to
-    /// every cell (raise `count`) to grow a finished run to a larger n.
+    /// every cell (raise `count`) to grow a finished run to a larger n, and may add cells (a
+    /// new `q`, a new corruption); the stored cells must stay as they were.
     #[arg(long)]
     pub resume: bool,
     /// Run only shard `i/n` of the cells (e.g. a Slurm array index); shards may share `--out`.

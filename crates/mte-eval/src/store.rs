@@ -62,9 +62,10 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
     }
 }
 
-/// Whether the spec's cells are the stored ones, each with the same seeds or more seeds
-/// appended (a run grows to a larger n: the stored episodes stay paired and valid); anything
-/// else is a mismatch naming the first cell that differs.
+/// Whether the spec keeps every stored cell, each with the same seeds or more seeds appended
+/// (a run grows to a larger n: the stored episodes stay paired and valid), and at most adds
+/// cells of new ids (a run grows by a row: a new `q`, a new corruption). Anything else (a
+/// stored cell missing or defined differently) is a mismatch naming the first such cell.
 fn check_same_grid(stored: &Manifest, spec: &Manifest, mpath: &Path) -> Result<(), StoreError> {
     let extends = |a: &CellSpec, b: &CellSpec| {
         b.seeds.starts_with(&a.seeds)
@@ -73,34 +74,18 @@ fn check_same_grid(stored: &Manifest, spec: &Manifest, mpath: &Path) -> Result<(
                 ..a.clone()
             } == *b
     };
-    if stored.cells.len() == spec.cells.len()
-        && stored
-            .cells
-            .iter()
-            .zip(&spec.cells)
-            .all(|(a, b)| extends(a, b))
-    {
-        return Ok(());
+    for a in &stored.cells {
+        let detail = match spec.cells.iter().find(|b| b.id == a.id) {
+            Some(b) if extends(a, b) => continue,
+            Some(_) => format!("cell {} is defined differently", a.id),
+            None => format!("cell {} is not in this spec", a.id),
+        };
+        return Err(StoreError::Mismatch {
+            path: mpath.to_path_buf(),
+            detail,
+        });
     }
-    let detail = stored
-        .cells
-        .iter()
-        .zip(&spec.cells)
-        .find(|(a, b)| !extends(a, b))
-        .map_or_else(
-            || {
-                format!(
-                    "{} cells stored, {} in the spec",
-                    stored.cells.len(),
-                    spec.cells.len()
-                )
-            },
-            |(a, _)| format!("cell {}", a.id),
-        );
-    Err(StoreError::Mismatch {
-        path: mpath.to_path_buf(),
-        detail,
-    })
+    Ok(())
 }
 
 /// An open run directory.
@@ -111,7 +96,8 @@ pub struct RunDir {
 
 impl RunDir {
     /// Creates `root` with `spec.toml` and `manifest.json`, or opens it when it already holds
-    /// the same grid and `resume` (or `shared`: several shards writing one directory) is set.
+    /// the same grid (or a grid this spec grows: more seeds, more cells) and `resume` (or
+    /// `shared`: several shards writing one directory) is set.
     pub fn create(
         root: &Path,
         spec_toml: &str,
@@ -480,13 +466,25 @@ mod tests {
         assert_eq!(read_manifest(&root)?.cells[0].seeds, vec![1, 2, 3]);
         let spec = fs::read_to_string(root.join("spec.toml")).map_err(io(&root))?;
         assert_eq!(spec, "seeds = 3");
-        // Other seeds, fewer seeds, or another cell: refused.
+        // A new cell appended: the run grows by a row; the stored cells stay as they were.
+        let mut row = more.clone();
+        row.cells.push(CellSpec {
+            id: "c1".into(),
+            h: 4,
+            ..more.cells[0].clone()
+        });
+        RunDir::create(&root, "rows = 2", &row, true)?;
+        let grown = read_manifest(&root)?;
+        assert_eq!(grown.cells, row.cells);
+        // Other seeds, fewer seeds, a stored cell changed, or a stored cell dropped: refused.
         for change in [
             |m: &mut Manifest| m.cells[0].seeds = vec![1, 5, 3],
             |m: &mut Manifest| m.cells[0].seeds = vec![1, 2],
             |m: &mut Manifest| m.cells[0].h = 4,
+            |m: &mut Manifest| drop(m.cells.remove(1)),
+            |m: &mut Manifest| m.cells[0].id = "c2".into(),
         ] {
-            let mut other = more.clone();
+            let mut other = row.clone();
             change(&mut other);
             assert!(matches!(
                 RunDir::create(&root, "", &other, true),

@@ -58,6 +58,42 @@ impl CellSpec {
     pub fn budget(&self) -> Option<f64> {
         self.corruption.fault.budget()
     }
+
+    /// Whether `other` defines the same cell, its seeds aside: equal in every field, the
+    /// policy compared as a lexically normalised path (`.` dropped, `dir/..` folded), so a
+    /// spec moved to another folder that names the same checkpoint (`sweeps/../assets/p`
+    /// and `.scratch/../assets/p`) still matches the run it grows.
+    pub fn same_but_seeds(&self, other: &CellSpec) -> bool {
+        let mut a = self.clone();
+        a.seeds.clone_from(&other.seeds);
+        a.policy = normalise_label(&self.policy);
+        let b = CellSpec {
+            policy: normalise_label(&other.policy),
+            ..other.clone()
+        };
+        a == b
+    }
+}
+
+/// A policy label as a path with `.` components dropped and `dir/..` pairs folded (purely
+/// lexical: no file system, no symlinks resolved; a leading `..` stays).
+fn normalise_label(label: &str) -> String {
+    use std::path::{Component, Path};
+    let mut parts: Vec<Component<'_>> = Vec::new();
+    for c in Path::new(label).components() {
+        match c {
+            Component::CurDir => {}
+            Component::ParentDir if matches!(parts.last(), Some(Component::Normal(_))) => {
+                parts.pop();
+            }
+            other => parts.push(other),
+        }
+    }
+    parts
+        .iter()
+        .collect::<std::path::PathBuf>()
+        .to_string_lossy()
+        .into_owned()
 }
 
 /// Wall time spent per stage of an episode (seconds). `runner` is everything that is not

@@ -67,13 +67,7 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
 /// cells of new ids (a run grows by a row: a new `q`, a new corruption). Anything else (a
 /// stored cell missing or defined differently) is a mismatch naming the first such cell.
 fn check_same_grid(stored: &Manifest, spec: &Manifest, mpath: &Path) -> Result<(), StoreError> {
-    let extends = |a: &CellSpec, b: &CellSpec| {
-        b.seeds.starts_with(&a.seeds)
-            && CellSpec {
-                seeds: b.seeds.clone(),
-                ..a.clone()
-            } == *b
-    };
+    let extends = |a: &CellSpec, b: &CellSpec| b.seeds.starts_with(&a.seeds) && a.same_but_seeds(b);
     for a in &stored.cells {
         let detail = match spec.cells.iter().find(|b| b.id == a.id) {
             Some(b) if extends(a, b) => continue,
@@ -306,7 +300,7 @@ pub fn load_runs(roots: &[PathBuf]) -> Result<(Manifest, Vec<Line>), StoreError>
             Some(acc) => {
                 for c in &m.cells {
                     match acc.cells.iter().find(|x| x.id == c.id) {
-                        Some(x) if x != c => {
+                        Some(x) if !(x.seeds == c.seeds && x.same_but_seeds(c)) => {
                             return Err(StoreError::Mismatch {
                                 path: root.join("manifest.json"),
                                 detail: format!("cell {} defined differently", c.id),
@@ -476,6 +470,12 @@ mod tests {
         RunDir::create(&root, "rows = 2", &row, true)?;
         let grown = read_manifest(&root)?;
         assert_eq!(grown.cells, row.cells);
+        // The same checkpoint named from a spec in another folder: the same cells.
+        let mut moved = row.clone();
+        for (c, label) in moved.cells.iter_mut().zip(["x/../p", "./y/z/../../p"]) {
+            c.policy = label.into();
+        }
+        RunDir::create(&root, "rows = 2", &moved, true)?;
         // Other seeds, fewer seeds, a stored cell changed, or a stored cell dropped: refused.
         for change in [
             |m: &mut Manifest| m.cells[0].seeds = vec![1, 5, 3],
@@ -483,6 +483,8 @@ mod tests {
             |m: &mut Manifest| m.cells[0].h = 4,
             |m: &mut Manifest| drop(m.cells.remove(1)),
             |m: &mut Manifest| m.cells[0].id = "c2".into(),
+            |m: &mut Manifest| m.cells[0].policy = "../p".into(),
+            |m: &mut Manifest| m.cells[0].policy = "q/p".into(),
         ] {
             let mut other = row.clone();
             change(&mut other);

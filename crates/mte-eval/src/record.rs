@@ -64,14 +64,12 @@ impl CellSpec {
     /// spec moved to another folder that names the same checkpoint (`sweeps/../assets/p`
     /// and `.scratch/../assets/p`) still matches the run it grows.
     pub fn same_but_seeds(&self, other: &CellSpec) -> bool {
-        let mut a = self.clone();
-        a.seeds.clone_from(&other.seeds);
-        a.policy = normalise_label(&self.policy);
-        let b = CellSpec {
-            policy: normalise_label(&other.policy),
-            ..other.clone()
+        let key = |c: &CellSpec| CellSpec {
+            seeds: Vec::new(),
+            policy: normalise_label(&c.policy),
+            ..c.clone()
         };
-        a == b
+        key(self) == key(other)
     }
 }
 

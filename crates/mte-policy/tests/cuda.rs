@@ -22,7 +22,7 @@ mod common;
 use std::path::PathBuf;
 
 use candle_core::{Device, Tensor};
-use mte_policy::{ComputeDevice, DiffusionPolicy, Observation, checkpoint};
+use mte_policy::{ChunkPolicy, ComputeDevice, DiffusionPolicy, Observation, checkpoint};
 use rand::SeedableRng;
 
 use common::max_abs_diff_slices;
@@ -176,4 +176,98 @@ fn the_observation_gradient_matches_the_cpu() {
         "losses {la} vs {lb}"
     );
     assert!(cos >= 0.999, "gradient cosine {cos}");
+}
+
+/// A two-observation history for a robomimic policy with both cameras: the 9-D
+/// proprioception and two textured 84 x 84 frames.
+fn robomimic_history() -> Vec<Observation> {
+    let frame = |t: usize, k: usize| -> Vec<u8> {
+        (0..84 * 84 * 3)
+            .map(|i| ((i * 29 + t * 13 + k * 101) % 251) as u8)
+            .collect()
+    };
+    (0..2)
+        .map(|t| Observation {
+            state: (0..9)
+                .map(|i| 0.05 * i as f32 - 0.2 + 0.01 * t as f32)
+                .collect(),
+            env_state: None,
+            image: Some(frame(t, 0)),
+            wrist_image: Some(frame(t, 1)),
+        })
+        .collect()
+}
+
+/// The two-camera robomimic policy (agentview and wrist frames through one encoder) behind the
+/// one seam (`load_policy_on`). Its actions are normalised deltas in [-1, 1], so the PushT
+/// chunk bound of 1 px does not apply; its chunk (16 DDIM steps) is held to 1e-2 of that
+/// range, against candidate spreads of 0.1 and more in the can experiments.
+#[test]
+fn the_two_camera_policy_matches_the_cpu() {
+    let dir = asset("robomimic_can_cams_cpu");
+    let hist = robomimic_history();
+    let chunk = |p: &dyn ChunkPolicy| {
+        p.predict_chunk(&hist, &mut rand_chacha::ChaCha8Rng::seed_from_u64(11))
+            .expect("chunk")
+    };
+    let cpu = mte_policy::load_policy_on(&dir, &Device::Cpu).expect("cpu load");
+    let gpu = mte_policy::load_policy_on(&dir, &gpu()).expect("gpu load");
+    let (a, b) = (chunk(cpu.as_ref()), chunk(gpu.as_ref()));
+    let d = max_abs_diff_slices(&a, &b);
+    eprintln!("robomimic_can_cams_cpu: chunk max |cpu - gpu| = {d:.3e}");
+    assert!(d <= 1e-2, "chunks differ by {d}");
+    assert!(a.iter().any(|v| v.abs() > 1e-3), "a zero chunk {a:?}");
+}
+
+/// ACT runs on the CPU only (its fused kernels have no CUDA version): asking for a GPU is a
+/// typed error that says so, not a crash or a silent CPU run.
+#[test]
+fn act_on_a_gpu_is_a_typed_error() {
+    for name in ["pusht_keypoints_act_cpu_v2", "pusht_image_act_cpu"] {
+        match mte_policy::load_policy_on(&asset(name), &gpu()) {
+            Err(mte_policy::PolicyError::Device { device, reason }) => {
+                eprintln!("{name}: device {device}: {reason}");
+                assert!(reason.contains("CPU"), "{name}: {reason}");
+            }
+            Err(e) => panic!("{name}: another error {e}"),
+            Ok(_) => panic!("{name}: ACT loaded on the GPU"),
+        }
+    }
+}
+
+/// The lockstep runner's batched path (`predict_chunks`, one batch for several episodes'
+/// queries) on the GPU gives each query the chunk a lone CPU query gets, within the chunk
+/// bound above: the CPU-only fused kernels must step aside for a CUDA tensor.
+#[test]
+fn a_batch_of_queries_matches_lone_cpu_queries() {
+    let (cpu, gpu) = both("pusht_image_cpu_v3");
+    let hists: Vec<Vec<Observation>> = (0..3)
+        .map(|k| {
+            let mut h = history(true, false);
+            for o in &mut h {
+                o.state[0] += 40.0 * k as f32;
+            }
+            h
+        })
+        .collect();
+    let mut rngs: Vec<rand_chacha::ChaCha8Rng> = (0..3)
+        .map(|k| rand_chacha::ChaCha8Rng::seed_from_u64(100 + k))
+        .collect();
+    let mut queries: Vec<mte_policy::Query<'_>> = hists
+        .iter()
+        .zip(rngs.iter_mut())
+        .map(|(h, r)| mte_policy::Query { history: h, rng: r })
+        .collect();
+    let batched = ChunkPolicy::predict_chunks(&gpu, &mut queries).expect("batch");
+    for (k, h) in hists.iter().enumerate() {
+        let lone = cpu
+            .predict(
+                h,
+                &mut rand_chacha::ChaCha8Rng::seed_from_u64(100 + k as u64),
+            )
+            .expect("cpu chunk");
+        let d = max_abs_diff_slices(&lone, &batched[k]);
+        eprintln!("query {k} of a GPU batch of 3: max |cpu - gpu| = {d:.3e} px");
+        assert!(d <= 1.0, "query {k}: {d} px");
+    }
 }

@@ -827,6 +827,11 @@ pub struct ReportArgs {
     /// Cell of the aggregator table (default: the corrupted cell with most arms).
     #[arg(long)]
     pub cell: Option<String>,
+    /// Report only these cells (repeatable; name the clean cells the others are read
+    /// against too): the tables, plots and the multiple-test corrections then count them
+    /// alone, e.g. when a run directory merged for its clean cell holds other experiments.
+    #[arg(long, value_name = "CELL")]
+    pub only: Vec<String>,
     /// Add the defence table: `UNDEFENDED:DEFENDED` policies (paths as in the specs or their
     /// last component), cells paired by corruption and h.
     #[arg(long, value_name = "UNDEFENDED:DEFENDED", value_parser = parse_defence)]

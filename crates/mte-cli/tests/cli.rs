@@ -456,6 +456,37 @@ fn demo_runs_pairs_resumes_and_reports() {
         .success();
     let v: serde_json::Value = serde_json::from_slice(&json.get_output().stdout).unwrap();
     assert!(v["markdown"].as_str().unwrap().contains("median"));
+    // --only: the named cell alone (tables and Holm families); an unknown name is a
+    // typed error that lists the cells.
+    let manifest: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap();
+    let ids: Vec<&str> = manifest["cells"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["id"].as_str().unwrap())
+        .collect();
+    let corrupted = ids.iter().find(|id| id.contains("blank")).unwrap();
+    let clean = ids.iter().find(|id| id.contains("clean")).unwrap();
+    let only = mte()
+        .args(["report", "--format", "json", "--only", corrupted, "--out"])
+        .arg(dir.path().join("only"))
+        .arg(&out)
+        .assert()
+        .success();
+    let v: serde_json::Value = serde_json::from_slice(&only.get_output().stdout).unwrap();
+    let md = v["markdown"].as_str().unwrap();
+    assert!(md.contains("1 cells (1 corrupted)"), "{md}");
+    assert!(md.contains(corrupted) && !md.contains(clean), "{md}");
+    mte()
+        .args(["report", "--only", "nope"])
+        .arg(&out)
+        .assert()
+        .code(2)
+        .stderr(
+            predicate::str::contains("cell `nope` is not a cell of the runs")
+                .and(predicate::str::contains(*clean)),
+        );
     // More seeds grow the run: only the new ones run.
     let grown = String::from_utf8(run("2").get_output().stdout.clone()).unwrap();
     assert!(grown.contains("4 episodes run, 4 already done"), "{grown}");

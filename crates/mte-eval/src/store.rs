@@ -53,6 +53,14 @@ pub enum StoreError {
         /// The path given.
         path: PathBuf,
     },
+    /// A cell asked for by name is not a cell of the runs.
+    #[error("cell `{cell}` is not a cell of the runs (cells: {available})")]
+    UnknownCell {
+        /// The cell id given.
+        cell: String,
+        /// The runs' cell ids, comma separated.
+        available: String,
+    },
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
@@ -326,6 +334,44 @@ pub fn load_runs(roots: &[PathBuf]) -> Result<(Manifest, Vec<Line>), StoreError>
     Ok((m, lines))
 }
 
+/// Keeps only the cells named in `ids` (and their lines) of a loaded set of runs, in the
+/// manifest's order, so that a report's tables, and the families its multiple-test corrections
+/// count, hold those cells alone. Every id must name a cell; an empty `ids` keeps everything.
+///
+/// # Errors
+///
+/// [`StoreError::UnknownCell`] for an id that is not a cell of the manifest.
+pub fn keep_cells(
+    manifest: &mut Manifest,
+    lines: &mut Vec<Line>,
+    ids: &[String],
+) -> Result<(), StoreError> {
+    if ids.is_empty() {
+        return Ok(());
+    }
+    if let Some(missing) = ids
+        .iter()
+        .find(|id| !manifest.cells.iter().any(|c| &c.id == *id))
+    {
+        return Err(StoreError::UnknownCell {
+            cell: missing.clone(),
+            available: manifest
+                .cells
+                .iter()
+                .map(|c| c.id.as_str())
+                .collect::<Vec<_>>()
+                .join(", "),
+        });
+    }
+    let kept = |cell: &str| ids.iter().any(|id| id == cell);
+    manifest.cells.retain(|c| kept(&c.id));
+    lines.retain(|l| match l {
+        Line::Episode(e) => kept(&e.cell),
+        Line::Error(e) => kept(&e.cell),
+    });
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -380,6 +426,47 @@ mod tests {
             times: StageTimes::default(),
             monitors: Default::default(),
         })
+    }
+
+    #[test]
+    fn keep_cells_keeps_the_named_cells_and_their_lines_only() {
+        let mut m = manifest();
+        let mut other = m.cells[0].clone();
+        other.id = "c1".into();
+        m.cells.push(other);
+        let in_c1 = |l: &Line| {
+            let mut l = l.clone();
+            match &mut l {
+                Line::Episode(e) => e.cell = "c1".into(),
+                Line::Error(e) => e.cell = "c1".into(),
+            }
+            l
+        };
+        let error = Line::Error(ErrorRecord {
+            cell: "c0".into(),
+            arm: None,
+            seed: Some(1),
+            error: "worker crashed".into(),
+        });
+        let all = vec![episode(1), in_c1(&episode(1)), in_c1(&error), error.clone()];
+
+        let (mut m1, mut l1) = (m.clone(), all.clone());
+        keep_cells(&mut m1, &mut l1, &["c1".into()]).expect("c1 is a cell");
+        assert_eq!(m1.cells.len(), 1);
+        assert_eq!(m1.cells[0].id, "c1");
+        assert_eq!(l1, vec![in_c1(&episode(1)), in_c1(&error)]);
+
+        let (mut m2, mut l2) = (m.clone(), all.clone());
+        keep_cells(&mut m2, &mut l2, &[]).expect("nothing asked");
+        assert_eq!((m2, l2), (m.clone(), all.clone()));
+
+        let (mut m3, mut l3) = (m.clone(), all.clone());
+        let e = keep_cells(&mut m3, &mut l3, &["c1".into(), "c9".into()]).expect_err("c9");
+        assert!(
+            matches!(&e, StoreError::UnknownCell { cell, available } if cell == "c9" && available == "c0, c1"),
+            "{e}"
+        );
+        assert_eq!((m3, l3), (m, all), "a refused call changes nothing");
     }
 
     #[test]

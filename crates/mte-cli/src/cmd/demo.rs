@@ -83,6 +83,7 @@ pub fn run(cli: &Cli, a: &DemoArgs) -> Result<()> {
     super::report::write_and_print(
         cli,
         std::slice::from_ref(&a.out),
+        &[],
         &a.out,
         &ReportOptions::default(),
         true,

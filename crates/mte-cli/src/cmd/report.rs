@@ -12,11 +12,13 @@ use crate::args::{Cli, Format, ReportArgs};
 pub fn write_and_print(
     cli: &Cli,
     runs: &[std::path::PathBuf],
+    only: &[String],
     out: &Path,
     opts: &ReportOptions,
     figure2: bool,
 ) -> Result<()> {
-    let (manifest, lines) = mte_eval::store::load_runs(runs)?;
+    let (mut manifest, mut lines) = mte_eval::store::load_runs(runs)?;
+    mte_eval::store::keep_cells(&mut manifest, &mut lines, only)?;
     let mut r = report::build(&manifest, &lines, opts).context("building the report")?;
     if figure2 && let Some(f) = r.figure2.as_mut() {
         let stream = run_stream(&runs[0])?;
@@ -89,5 +91,5 @@ pub fn run(cli: &Cli, a: &ReportArgs) -> Result<()> {
         controls: a.control.clone(),
         mcnemar: a.mcnemar,
     };
-    write_and_print(cli, &a.runs, &out, &opts, a.figure2)
+    write_and_print(cli, &a.runs, &a.only, &out, &opts, a.figure2)
 }

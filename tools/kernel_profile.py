@@ -13,7 +13,6 @@ import argparse
 import collections
 import csv
 import gzip
-import io
 import sys
 
 
@@ -26,7 +25,7 @@ def read_rows(path):
     if start is None:
         raise ValueError(f"{path}: no ncu CSV header (a line starting with \"ID\")")
     rows = []
-    for r in csv.DictReader(io.StringIO("\n".join(lines[start:]))):
+    for r in csv.DictReader(lines[start:]):
         if r["Metric Name"] != "gpu__time_duration.sum" or r["Metric Unit"] != "ns":
             raise ValueError(f"{path}: expected gpu__time_duration.sum in ns, got "
                              f"{r['Metric Name']} in {r['Metric Unit']}")

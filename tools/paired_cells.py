@@ -5,6 +5,7 @@ discordant pairs (success lost : success gained from the first cell to the secon
 two-sided exact McNemar p-value on them (binomial, p = 1/2, the same test as `mte report`).
 
     python tools/paired_cells.py RUN CELL_A CELL_B [CELL_C ...]   # every cell against CELL_A
+    python tools/paired_cells.py --arms RUN CELL ARM_A ARM_B [...]  # within one cell: every arm against ARM_A
 
 A cell written `OTHER_RUN::CELL` is read from another run directory (runs of one policy on the
 same seeds and noise seed pair by seed across runs, as within one).
@@ -54,12 +55,28 @@ def row(arm, cell, a, b):
     )
 
 
-def main(run, base, *others):
-    a = load(run, base)
-    print(
+def header(base):
+    return (
         f"| arm | cell | n | {base} | cell | Δ ± paired SE | Wilcoxon p | successes | lost:gained | McNemar p |\n"
         "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|"
     )
+
+
+def arms(run, cell, base, *others):
+    """Arms of one cell against `base` on the seeds both ran (columns as for cells; the first
+    column names the arm compared, the second the cell)."""
+    a = load(run, cell)
+    missing = [arm for arm in (base, *others) if arm not in a]
+    if missing:
+        sys.exit(f"cell {cell} has no arm {', '.join(missing)}; it has {', '.join(sorted(a))}")
+    print(header(base))
+    for arm in others:
+        print(row(arm, cell, a[base], a[arm]))
+
+
+def main(run, base, *others):
+    a = load(run, base)
+    print(header(base))
     for cell in others:
         b = load(run, cell)
         for arm in sorted(a):
@@ -68,4 +85,7 @@ def main(run, base, *others):
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:])
+    if sys.argv[1:2] == ["--arms"]:
+        arms(*sys.argv[2:])
+    else:
+        main(*sys.argv[1:])

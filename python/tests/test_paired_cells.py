@@ -76,3 +76,29 @@ def test_exact_mcnemar_on_successes(tmp_path, capsys):
     assert tool.mcnemar_exact(0, 0) == 1.0
     assert tool.mcnemar_exact(3, 3) == 1.0
     assert abs(tool.mcnemar_exact(20, 0) - 2 * 0.5**20) < 1e-15
+
+
+def test_arms_of_one_cell_pair_by_seed(tmp_path, capsys):
+    (tmp_path / "cells").mkdir()
+    rng = np.random.default_rng(1)
+    base = {s: float(v) for s, v in zip(range(15), rng.uniform(0, 1, 15))}
+    other = {s: base[s] + 0.05 * (s % 3) for s in range(12)}  # 12 seeds only
+    write_cell(tmp_path, "c", {"open-loop": base, "median": other})
+    load_tool().arms(str(tmp_path), "c", "open-loop", "median")
+    row = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| `median`")][0]
+    d = np.array([other[s] - base[s] for s in range(12)])
+    p = stats.wilcoxon([other[s] for s in range(12)], [base[s] for s in range(12)]).pvalue
+    assert "| 12 |" in row, "only the seeds both arms ran"
+    assert f"{d.mean():+.3f} ± {d.std(ddof=1) / np.sqrt(12):.3f}" in row
+    assert f"{p:.2g}" in row
+
+
+def test_arms_names_a_missing_arm(tmp_path):
+    (tmp_path / "cells").mkdir()
+    write_cell(tmp_path, "c", {"ewm": {0: 0.5, 1: 0.6}})
+    try:
+        load_tool().arms(str(tmp_path), "c", "ewm", "median")
+    except SystemExit as e:
+        assert "no arm median" in str(e) and "it has ewm" in str(e)
+    else:
+        raise AssertionError("a missing arm must stop the tool")

@@ -133,7 +133,7 @@ pub fn evaluate(
             .then(|| {
                 cells
                     .iter()
-                    .find(|r| r.corruption.is_clean() && r.policy == c.policy && r.h == c.h)
+                    .find(|r| r.corruption.is_clean() && r.same_policy(c) && r.h == c.h)
             })
             .flatten();
         let empty = Vec::new();

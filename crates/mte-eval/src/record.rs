@@ -59,6 +59,18 @@ impl CellSpec {
         self.corruption.fault.budget()
     }
 
+    /// Whether `other` runs the same checkpoint: the policy labels compared as lexically
+    /// normalised paths, as in [`CellSpec::same_but_seeds`], so cells of runs made from specs in
+    /// different folders (`sweeps/../assets/p`, `.scratch/../assets/p`) pair in reports.
+    pub fn same_policy(&self, other: &CellSpec) -> bool {
+        self.policy_key() == other.policy_key()
+    }
+
+    /// The policy label as a lexically normalised path: the key reports group cells by.
+    pub fn policy_key(&self) -> String {
+        normalise_label(&self.policy)
+    }
+
     /// Whether `other` defines the same cell, its seeds aside: equal in every field, the
     /// policy compared as a lexically normalised path (`.` dropped, `dir/..` folded), so a
     /// spec moved to another folder that names the same checkpoint (`sweeps/../assets/p`

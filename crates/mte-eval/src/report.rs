@@ -1585,7 +1585,7 @@ fn arms_of(cells: &[CellData<'_>], members: &[usize]) -> Vec<String> {
 fn clean_of(cells: &[CellData<'_>], ci: usize) -> Option<usize> {
     let s = cells[ci].spec;
     cells.iter().position(|c| {
-        c.is_clean() && c.spec.policy == s.policy && c.spec.h == s.h && c.spec.span == s.span
+        c.is_clean() && c.spec.same_policy(s) && c.spec.h == s.h && c.spec.span == s.span
     })
 }
 
@@ -1966,6 +1966,31 @@ mod tests {
             "{}",
             notes[0]
         );
+    }
+
+    #[test]
+    fn a_clean_cell_pairs_with_the_same_checkpoint_however_its_path_is_spelled() {
+        // Runs made from specs in two folders name one checkpoint two ways; a different
+        // checkpoint of the same name does not pair.
+        let clean_of_q1 = |policy: &str| {
+            let mut m = manifest();
+            let q1 = m.cells.iter_mut().find(|c| c.id == Q1).expect("cell Q1");
+            q1.policy = policy.into();
+            let r = build(&m, &lines(), &ReportOptions::default()).unwrap();
+            row(&r, Q1).clean.as_ref().map(|c| c.coverage.mean)
+        };
+        let full: f64 = CLEAN_EWM.iter().sum::<f64>() / CLEAN_EWM.len() as f64;
+        for same in [
+            "assets/policies/pusht_keypoints",
+            ".scratch/../assets/policies/pusht_keypoints",
+            "./sweeps/../assets/./policies/pusht_keypoints",
+        ] {
+            let got = clean_of_q1(same).unwrap_or_else(|| panic!("{same}: no clean cell"));
+            assert!((got - full).abs() < 1e-12, "{same}: {got}");
+        }
+        for other in ["runs/pusht_keypoints", "../assets/policies/pusht_keypoints"] {
+            assert_eq!(clean_of_q1(other), None, "{other}");
+        }
     }
 
     #[test]

@@ -42,7 +42,7 @@ fn span_plots(
         if !c.is_clean() || c.spec.span.is_none() {
             continue;
         }
-        let key = (c.spec.policy.clone(), c.spec.h);
+        let key = (c.spec.policy_key(), c.spec.h);
         match groups.iter_mut().find(|(k, _)| *k == key) {
             Some((_, v)) => v.push(ci),
             None => groups.push((key, vec![ci])),
@@ -112,7 +112,7 @@ fn coverage_plots(
     for &ci in corrupted {
         let s = cells[ci].spec;
         let key = (
-            s.policy.clone(),
+            s.policy_key(),
             s.corruption.fault.to_string(),
             kind_tag(&s.corruption.schedule),
             s.h,
@@ -224,7 +224,7 @@ fn recovered_plots(
     for &ci in corrupted {
         let s = cells[ci].spec;
         let key = (
-            s.policy.clone(),
+            s.policy_key(),
             kind_tag(&s.corruption.fault),
             s.h,
             s.span,

@@ -78,7 +78,7 @@ impl CellSpec {
     pub fn same_but_seeds(&self, other: &CellSpec) -> bool {
         let key = |c: &CellSpec| CellSpec {
             seeds: Vec::new(),
-            policy: normalise_label(&c.policy),
+            policy: c.policy_key(),
             ..c.clone()
         };
         key(self) == key(other)

@@ -86,8 +86,9 @@ impl CellSpec {
 }
 
 /// A policy label as a path with `.` components dropped and `dir/..` pairs folded (purely
-/// lexical: no file system, no symlinks resolved; a leading `..` stays).
-fn normalise_label(label: &str) -> String {
+/// lexical: no file system, no symlinks resolved; a leading `..` stays): the form
+/// [`CellSpec::policy_key`] gives, for matching a user-given policy path against cells.
+pub(crate) fn normalise_label(label: &str) -> String {
     use std::path::{Component, Path};
     let mut parts: Vec<Component<'_>> = Vec::new();
     for c in Path::new(label).components() {

@@ -2566,6 +2566,50 @@ mod tests {
     }
 
     #[test]
+    fn defence_table_matches_a_policy_path_however_it_is_spelled() {
+        let (m, l) = defended_run(0.1);
+        let with = |defended: &str| {
+            build(
+                &m,
+                &l,
+                &ReportOptions {
+                    defence: Some(DefencePair {
+                        undefended: "pusht_keypoints".into(),
+                        defended: defended.into(),
+                    }),
+                    ..Default::default()
+                },
+            )
+        };
+        let want = with("runs/ft/tuned")
+            .unwrap_or_else(|e| panic!("{e}"))
+            .defence;
+        assert_eq!(want.as_ref().map(|t| t.rows.len()), Some(2));
+        for spelling in [
+            "./runs/ft/tuned",
+            "sweeps/../runs/ft/tuned",
+            "runs/ft/./tuned",
+        ] {
+            let got = with(spelling).unwrap_or_else(|e| panic!("{spelling}: {e}"));
+            let rows = got.defence.map(|t| t.rows);
+            assert_eq!(rows, want.as_ref().map(|t| t.rows.clone()), "{spelling}");
+        }
+        for other in ["ft/tuned", "runs/ft2/tuned/..", "../runs/ft/tuned"] {
+            let e = with(other).expect_err(other);
+            assert!(
+                matches!(
+                    e,
+                    ReportError::UnknownPolicy {
+                        role: "defended",
+                        ..
+                    }
+                ),
+                "{other}: {e}"
+            );
+        }
+    }
+
+    #[test]
     fn bad_options_and_records_are_typed_errors() {
         let (m, l) = (manifest(), lines());
         let bad = |opts: ReportOptions| build(&m, &l, &opts).unwrap_err();

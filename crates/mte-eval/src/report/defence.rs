@@ -17,6 +17,8 @@
 //! with a paired jackknife standard error).
 
 use mte_stats::two_proportion_ztest;
+
+use crate::record::normalise_label;
 use serde::Serialize;
 
 use super::{
@@ -25,8 +27,8 @@ use super::{
     policy_label, recovered, stats_err, success_count, table,
 };
 
-/// Which two policies the defence table compares (policy paths as in the spec, or their
-/// last path component).
+/// Which two policies the defence table compares (policy paths, compared as lexically
+/// normalised paths, or their last path component).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct DefencePair {
     /// The policy without the defence.
@@ -78,8 +80,10 @@ pub struct DefenceTable {
     pub rows: Vec<DefenceRow>,
 }
 
+/// Whether `cell` runs the policy the user named: its path, spelled any way that normalises
+/// to the same path (`sweeps/../assets/p` and `assets/p`), or its last path component.
 fn is_policy(cell: &CellData<'_>, name: &str) -> bool {
-    cell.spec.policy == name || policy_label(&cell.spec.policy) == name
+    cell.spec.policy_key() == normalise_label(name) || policy_label(&cell.spec.policy) == name
 }
 
 /// Builds the table; `arms` are the arms to report (in order), when a cell has them.

@@ -84,8 +84,25 @@ def main(run, base, *others):
                 print(row(arm, cell, a[arm], b[arm]))
 
 
+def cli(argv):
+    """Runs the command line `argv` (without the program name); returns the exit status: 0, or 2
+    with the usage on stderr for `-h`, `--help` or too few arguments, or with the missing file
+    named for a cell that has no records."""
+    usage = __doc__.split("\n\n")[1]
+    if argv[:1] in (["-h"], ["--help"]):
+        print(usage, file=sys.stderr)
+        return 0
+    command, args, least = (arms, argv[1:], 4) if argv[:1] == ["--arms"] else (main, argv, 3)
+    if len(args) < least:
+        print(f"expected at least {least} arguments, got {len(args)}\n{usage}", file=sys.stderr)
+        return 2
+    try:
+        command(*args)
+    except FileNotFoundError as e:
+        print(f"no records: {e.filename}", file=sys.stderr)
+        return 2
+    return 0
+
+
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["--arms"]:
-        arms(*sys.argv[2:])
-    else:
-        main(*sys.argv[1:])
+    sys.exit(cli(sys.argv[1:]))

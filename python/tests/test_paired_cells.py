@@ -102,3 +102,20 @@ def test_arms_names_a_missing_arm(tmp_path):
         assert "no arm median" in str(e) and "it has ewm" in str(e)
     else:
         raise AssertionError("a missing arm must stop the tool")
+
+
+def test_the_command_line_explains_bad_arguments(tmp_path, capsys):
+    tool = load_tool()
+    assert tool.cli(["--help"]) == 0
+    assert "paired_cells.py RUN CELL_A CELL_B" in capsys.readouterr().err
+    assert tool.cli([str(tmp_path), "base"]) == 2
+    assert "expected at least 3 arguments, got 2" in capsys.readouterr().err
+    assert tool.cli(["--arms", str(tmp_path), "cell", "ewm"]) == 2
+    assert "expected at least 4 arguments, got 3" in capsys.readouterr().err
+    assert tool.cli([str(tmp_path), "base", "other"]) == 2
+    assert "no records:" in capsys.readouterr().err
+    (tmp_path / "cells").mkdir()
+    write_cell(tmp_path, "base", {"ewm": {0: 0.5, 1: 0.7}})
+    write_cell(tmp_path, "other", {"ewm": {0: 0.6, 1: 0.7}})
+    assert tool.cli([str(tmp_path), "base", "other"]) == 0
+    assert "`other`" in capsys.readouterr().out

@@ -832,8 +832,9 @@ pub struct ReportArgs {
     /// alone, e.g. when a run directory merged for its clean cell holds other experiments.
     #[arg(long, value_name = "CELL")]
     pub only: Vec<String>,
-    /// Add the defence table: `UNDEFENDED:DEFENDED` policies (paths as in the specs or their
-    /// last component), cells paired by corruption and h.
+    /// Add the defence table: `UNDEFENDED:DEFENDED` policies (paths however spelled, so
+    /// `./p` and `sweeps/../p` name `p`, or their last component), cells paired by
+    /// corruption and h.
     #[arg(long, value_name = "UNDEFENDED:DEFENDED", value_parser = parse_defence)]
     pub defence: Option<mte_eval::report::DefencePair>,
     /// Add the control table: the cell `ATTACK` read against the cell `CONTROL` per arm

@@ -17,8 +17,6 @@
 //! with a paired jackknife standard error).
 
 use mte_stats::two_proportion_ztest;
-
-use crate::record::normalise_label;
 use serde::Serialize;
 
 use super::{
@@ -26,6 +24,7 @@ use super::{
     clean_ref, code, compare, delta, denominator, est, f3, fraction_se, holm_opt, opt_p, pct,
     policy_label, recovered, stats_err, success_count, table,
 };
+use crate::record::normalise_label;
 
 /// Which two policies the defence table compares (policy paths, compared as lexically
 /// normalised paths, or their last path component).

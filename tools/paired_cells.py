@@ -20,6 +20,10 @@ import numpy as np
 from scipy import stats
 
 
+class MissingArm(ValueError):
+    """A cell has no records of an arm asked for; the message names the arm and the cell's arms."""
+
+
 def load(run, cell):
     """`{arm: {seed: (max_coverage, success)}}` of a cell's episode records."""
     if "::" in cell:
@@ -68,7 +72,7 @@ def arms(run, cell, base, *others):
     a = load(run, cell)
     missing = [arm for arm in (base, *others) if arm not in a]
     if missing:
-        sys.exit(f"cell {cell} has no arm {', '.join(missing)}; it has {', '.join(sorted(a))}")
+        raise MissingArm(f"cell {cell} has no arm {', '.join(missing)}; it has {', '.join(sorted(a))}")
     print(header(base))
     for arm in others:
         print(row(arm, cell, a[base], a[arm]))
@@ -87,7 +91,7 @@ def main(run, base, *others):
 def cli(argv):
     """Runs the command line `argv` (without the program name); returns the exit status: 0, or 2
     with the usage on stderr for `-h`, `--help` or too few arguments, or with the missing file
-    named for a cell that has no records."""
+    named for a cell that has no records, or with the arm named for an arm a cell lacks."""
     usage = __doc__.split("\n\n")[1]
     if argv[:1] in (["-h"], ["--help"]):
         print(usage, file=sys.stderr)
@@ -100,6 +104,9 @@ def cli(argv):
         command(*args)
     except FileNotFoundError as e:
         print(f"no records: {e.filename}", file=sys.stderr)
+        return 2
+    except MissingArm as e:
+        print(e, file=sys.stderr)
         return 2
     return 0
 

@@ -96,9 +96,10 @@ def test_arms_of_one_cell_pair_by_seed(tmp_path, capsys):
 def test_arms_names_a_missing_arm(tmp_path):
     (tmp_path / "cells").mkdir()
     write_cell(tmp_path, "c", {"ewm": {0: 0.5, 1: 0.6}})
+    tool = load_tool()
     try:
-        load_tool().arms(str(tmp_path), "c", "ewm", "median")
-    except SystemExit as e:
+        tool.arms(str(tmp_path), "c", "ewm", "median")
+    except tool.MissingArm as e:
         assert "no arm median" in str(e) and "it has ewm" in str(e)
     else:
         raise AssertionError("a missing arm must stop the tool")
@@ -119,3 +120,5 @@ def test_the_command_line_explains_bad_arguments(tmp_path, capsys):
     write_cell(tmp_path, "other", {"ewm": {0: 0.6, 1: 0.7}})
     assert tool.cli([str(tmp_path), "base", "other"]) == 0
     assert "`other`" in capsys.readouterr().out
+    assert tool.cli(["--arms", str(tmp_path), "base", "ewm", "median"]) == 2
+    assert "no arm median" in capsys.readouterr().err

@@ -285,7 +285,7 @@ fn bundled() -> std::path::PathBuf {
         .join("../../assets/policies/pusht_keypoints_cpu")
 }
 
-/// Every bundled image policy (three U-Nets and three Diffusion Transformers) loads from a fresh
+/// Every bundled image policy (three U-Nets and four Diffusion Transformers) loads from a fresh
 /// clone and drives PushT from pixels: a short episode runs, and its coverage is a valid
 /// fraction.
 #[test]
@@ -297,6 +297,7 @@ fn bundled_image_policies_run_an_episode() {
         "pusht_image_dit_cpu",
         "pusht_image_dit_cpu_v2",
         "pusht_image_dit_cpu_v3",
+        "pusht_image_dit_cpu_v4",
     ] {
         let ckpt = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("../../assets/policies")

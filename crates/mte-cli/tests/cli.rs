@@ -285,15 +285,16 @@ fn bundled() -> std::path::PathBuf {
         .join("../../assets/policies/pusht_keypoints_cpu")
 }
 
-/// Every bundled image policy (three U-Nets and four Diffusion Transformers) loads from a fresh
-/// clone and drives PushT from pixels: a short episode runs, and its coverage is a valid
-/// fraction.
+/// Every bundled image policy (four U-Nets, v4 with four observations, and four Diffusion
+/// Transformers) loads from a fresh clone and drives PushT from pixels: a short episode runs,
+/// and its coverage is a valid fraction.
 #[test]
 fn bundled_image_policies_run_an_episode() {
     for name in [
         "pusht_image_cpu",
         "pusht_image_cpu_v2",
         "pusht_image_cpu_v3",
+        "pusht_image_cpu_v4",
         "pusht_image_dit_cpu",
         "pusht_image_dit_cpu_v2",
         "pusht_image_dit_cpu_v3",

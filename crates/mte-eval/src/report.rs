@@ -2817,6 +2817,51 @@ mod tests {
         assert!((ewm.points[1].y - mean).abs() < 1e-12);
     }
 
+    /// One attack budget at two q: the recovered fraction is plotted against q, not on a
+    /// budget axis that holds a single value.
+    #[test]
+    fn recovered_plot_uses_q_when_the_cells_share_one_budget() {
+        let mut m = manifest();
+        let occluder = |q| CorruptionSpec {
+            fault: SensorFault::Occluder { size: 24 }.into(),
+            schedule: Schedule::Burst {
+                q,
+                phase: 0,
+                period: None,
+            },
+        };
+        m.cells[1] = cell("occ-24-q1", occluder(1));
+        m.cells[2] = cell("occ-24-q2", occluder(2));
+        let lines: Vec<Line> = lines()
+            .into_iter()
+            .map(|mut l| {
+                if let Line::Episode(e) = &mut l {
+                    e.cell = match e.cell.as_str() {
+                        Q1 => "occ-24-q1".into(),
+                        Q2 => "occ-24-q2".into(),
+                        c => c.into(),
+                    };
+                }
+                l
+            })
+            .filter(|l| !matches!(l, Line::Error(_)))
+            .collect();
+        let r = build(&m, &lines, &ReportOptions::default()).unwrap();
+        let p = r
+            .plots
+            .iter()
+            .find(|p| p.name.starts_with("recovered-"))
+            .unwrap();
+        assert_eq!(p.spec.x_label, "q (corrupted queries per period)");
+        assert!(p.spec.integer_x && !p.spec.log_x);
+        let xs: Vec<f64> = p.spec.series[0].points.iter().map(|q| q.x).collect();
+        assert_eq!(xs, [1.0, 2.0]);
+        let y1 = row(&r, "occ-24-q1").recovered.coverage.unwrap();
+        assert_eq!(p.spec.series[0].points[0].y, y1);
+        // No budget curve, so no Figure 1 panel for this kind.
+        assert!(r.plots.iter().all(|p| !p.name.starts_with("figure")));
+    }
+
     #[test]
     fn recovered_plot_uses_the_attack_budget_when_two_cells_have_one() {
         let mut m = manifest();

@@ -243,7 +243,16 @@ fn recovered_plots(
             .copied()
             .filter(|&ci| cells[ci].spec.budget().is_some())
             .collect();
-        let by_budget = budgeted.len() >= 2;
+        // Against the budget only where the cells differ in it: cells of one budget (a
+        // single-budget attack at several q, beside its budget-0 controls) plot against q.
+        let mut budgets: Vec<f64> = budgeted
+            .iter()
+            .filter_map(|&ci| cells[ci].spec.budget())
+            .filter(|&b| b > 0.0)
+            .collect();
+        budgets.sort_by(f64::total_cmp);
+        budgets.dedup();
+        let by_budget = budgets.len() >= 2;
         let used = if by_budget { &budgeted } else { members };
         let schedules: Vec<String> = {
             let mut v: Vec<String> = Vec::new();

@@ -2817,28 +2817,28 @@ mod tests {
         assert!((ewm.points[1].y - mean).abs() < 1e-12);
     }
 
-    /// One attack budget at two q: the recovered fraction is plotted against q, not on a
-    /// budget axis that holds a single value.
-    #[test]
-    fn recovered_plot_uses_q_when_the_cells_share_one_budget() {
+    /// The fixture run with its two corrupted cells replaced by occluder cells `(name, side,
+    /// q)` (the Q1 and Q2 records renamed to them), errors dropped, and its report.
+    fn occluder_report(cells: [(&str, usize, usize); 2]) -> Report {
         let mut m = manifest();
-        let occluder = |q| CorruptionSpec {
-            fault: SensorFault::Occluder { size: 24 }.into(),
+        let occluder = |size, q| CorruptionSpec {
+            fault: SensorFault::Occluder { size }.into(),
             schedule: Schedule::Burst {
                 q,
                 phase: 0,
                 period: None,
             },
         };
-        m.cells[1] = cell("occ-24-q1", occluder(1));
-        m.cells[2] = cell("occ-24-q2", occluder(2));
+        for (i, &(name, size, q)) in cells.iter().enumerate() {
+            m.cells[i + 1] = cell(name, occluder(size, q));
+        }
         let lines: Vec<Line> = lines()
             .into_iter()
             .map(|mut l| {
                 if let Line::Episode(e) = &mut l {
                     e.cell = match e.cell.as_str() {
-                        Q1 => "occ-24-q1".into(),
-                        Q2 => "occ-24-q2".into(),
+                        Q1 => cells[0].0.into(),
+                        Q2 => cells[1].0.into(),
                         c => c.into(),
                     };
                 }
@@ -2846,7 +2846,14 @@ mod tests {
             })
             .filter(|l| !matches!(l, Line::Error(_)))
             .collect();
-        let r = build(&m, &lines, &ReportOptions::default()).unwrap();
+        build(&m, &lines, &ReportOptions::default()).unwrap()
+    }
+
+    /// One attack budget at two q: the recovered fraction is plotted against q, not on a
+    /// budget axis that holds a single value.
+    #[test]
+    fn recovered_plot_uses_q_when_the_cells_share_one_budget() {
+        let r = occluder_report([("occ-24-q1", 24, 1), ("occ-24-q2", 24, 2)]);
         let p = r
             .plots
             .iter()
@@ -2864,32 +2871,7 @@ mod tests {
 
     #[test]
     fn recovered_plot_uses_the_attack_budget_when_two_cells_have_one() {
-        let mut m = manifest();
-        let occluder = |size| CorruptionSpec {
-            fault: SensorFault::Occluder { size }.into(),
-            schedule: Schedule::Burst {
-                q: 2,
-                phase: 0,
-                period: None,
-            },
-        };
-        m.cells[1] = cell("occ-24", occluder(24));
-        m.cells[2] = cell("occ-16", occluder(16));
-        let lines: Vec<Line> = lines()
-            .into_iter()
-            .map(|mut l| {
-                if let Line::Episode(e) = &mut l {
-                    e.cell = match e.cell.as_str() {
-                        Q1 => "occ-24".into(),
-                        Q2 => "occ-16".into(),
-                        c => c.into(),
-                    };
-                }
-                l
-            })
-            .filter(|l| !matches!(l, Line::Error(_)))
-            .collect();
-        let r = build(&m, &lines, &ReportOptions::default()).unwrap();
+        let r = occluder_report([("occ-24", 24, 2), ("occ-16", 16, 2)]);
         let p = r
             .plots
             .iter()

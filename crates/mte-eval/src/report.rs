@@ -2869,6 +2869,25 @@ mod tests {
         assert!(r.plots.iter().all(|p| !p.name.starts_with("figure")));
     }
 
+    /// A budget-0 cell with a recovered fraction of its own keeps the budget axis (0 and the
+    /// attack's budget), so it does not share an x with the attack on a q axis.
+    #[test]
+    fn recovered_plot_keeps_a_budget_0_cell_with_a_point_on_the_budget_axis() {
+        let r = occluder_report([("occ-24", 24, 2), ("occ-0", 0, 2)]);
+        assert!(
+            row(&r, "occ-0").recovered.coverage.is_some(),
+            "the fixture's point"
+        );
+        let p = r
+            .plots
+            .iter()
+            .find(|p| p.name.starts_with("recovered-"))
+            .unwrap();
+        assert_eq!(p.spec.x_label, "occluder side (px)");
+        let xs: Vec<f64> = p.spec.series[0].points.iter().map(|q| q.x).collect();
+        assert_eq!(xs, [0.0, 24.0]);
+    }
+
     #[test]
     fn recovered_plot_uses_the_attack_budget_when_two_cells_have_one() {
         let r = occluder_report([("occ-24", 24, 2), ("occ-16", 16, 2)]);

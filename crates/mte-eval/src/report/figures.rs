@@ -243,12 +243,22 @@ fn recovered_plots(
             .copied()
             .filter(|&ci| cells[ci].spec.budget().is_some())
             .collect();
-        // Against the budget only where the cells differ in it: cells of one budget (a
-        // single-budget attack at several q, beside its budget-0 controls) plot against q.
+        // Against the budget only where the plotted cells differ in it: one budget at several
+        // q plots against q. A budget-0 cell (a random-point control) counts only where it
+        // has a recovered fraction, i.e. a point to draw; otherwise it would put a lone
+        // budget on the axis.
+        let plotted = |ci: usize| {
+            let id = &cells[ci].spec.id;
+            ctx.main
+                .iter()
+                .any(|r| &r.cell == id && r.recovered.coverage.is_some())
+        };
         let mut budgets: Vec<f64> = budgeted
             .iter()
-            .filter_map(|&ci| cells[ci].spec.budget())
-            .filter(|&b| b > 0.0)
+            .filter_map(|&ci| {
+                let b = cells[ci].spec.budget()?;
+                (b > 0.0 || plotted(ci)).then_some(b)
+            })
             .collect();
         budgets.sort_by(f64::total_cmp);
         budgets.dedup();

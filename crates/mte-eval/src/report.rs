@@ -2817,6 +2817,16 @@ mod tests {
         assert!((ewm.points[1].y - mean).abs() < 1e-12);
     }
 
+    /// A report's recovered-fraction plot and the x values of its first series.
+    fn recovered_plot(r: &Report) -> (&Plot, Vec<f64>) {
+        let p = r
+            .plots
+            .iter()
+            .find(|p| p.name.starts_with("recovered-"))
+            .unwrap();
+        (p, p.spec.series[0].points.iter().map(|q| q.x).collect())
+    }
+
     /// The fixture run with its two corrupted cells replaced by occluder cells `(name, side,
     /// q)` (the Q1 and Q2 records renamed to them), errors dropped, and its report.
     fn occluder_report(cells: [(&str, usize, usize); 2]) -> Report {
@@ -2854,14 +2864,9 @@ mod tests {
     #[test]
     fn recovered_plot_uses_q_when_the_cells_share_one_budget() {
         let r = occluder_report([("occ-24-q1", 24, 1), ("occ-24-q2", 24, 2)]);
-        let p = r
-            .plots
-            .iter()
-            .find(|p| p.name.starts_with("recovered-"))
-            .unwrap();
+        let (p, xs) = recovered_plot(&r);
         assert_eq!(p.spec.x_label, "q (corrupted queries per period)");
         assert!(p.spec.integer_x && !p.spec.log_x);
-        let xs: Vec<f64> = p.spec.series[0].points.iter().map(|q| q.x).collect();
         assert_eq!(xs, [1.0, 2.0]);
         let y1 = row(&r, "occ-24-q1").recovered.coverage.unwrap();
         assert_eq!(p.spec.series[0].points[0].y, y1);
@@ -2878,27 +2883,17 @@ mod tests {
             row(&r, "occ-0").recovered.coverage.is_some(),
             "the fixture's point"
         );
-        let p = r
-            .plots
-            .iter()
-            .find(|p| p.name.starts_with("recovered-"))
-            .unwrap();
+        let (p, xs) = recovered_plot(&r);
         assert_eq!(p.spec.x_label, "occluder side (px)");
-        let xs: Vec<f64> = p.spec.series[0].points.iter().map(|q| q.x).collect();
         assert_eq!(xs, [0.0, 24.0]);
     }
 
     #[test]
     fn recovered_plot_uses_the_attack_budget_when_two_cells_have_one() {
         let r = occluder_report([("occ-24", 24, 2), ("occ-16", 16, 2)]);
-        let p = r
-            .plots
-            .iter()
-            .find(|p| p.name.starts_with("recovered-"))
-            .unwrap();
+        let (p, xs) = recovered_plot(&r);
         assert_eq!(p.spec.x_label, "occluder side (px)");
         assert!(!p.spec.integer_x);
-        let xs: Vec<f64> = p.spec.series[0].points.iter().map(|q| q.x).collect();
         assert_eq!(xs, [16.0, 24.0]);
         let y24 = row(&r, "occ-24").recovered.coverage.unwrap();
         assert_eq!(p.spec.series[0].points[1].y, y24);

@@ -243,26 +243,7 @@ fn recovered_plots(
             .copied()
             .filter(|&ci| cells[ci].spec.budget().is_some())
             .collect();
-        // Against the budget only where the plotted cells differ in it: one budget at several
-        // q plots against q. A budget-0 cell (a random-point control) counts only where it
-        // has a recovered fraction, i.e. a point to draw; otherwise it would put a lone
-        // budget on the axis.
-        let plotted = |ci: usize| {
-            let id = &cells[ci].spec.id;
-            ctx.main
-                .iter()
-                .any(|r| &r.cell == id && r.recovered.coverage.is_some())
-        };
-        let mut budgets: Vec<f64> = budgeted
-            .iter()
-            .filter_map(|&ci| {
-                let b = cells[ci].spec.budget()?;
-                (b > 0.0 || plotted(ci)).then_some(b)
-            })
-            .collect();
-        budgets.sort_by(f64::total_cmp);
-        budgets.dedup();
-        let by_budget = budgets.len() >= 2;
+        let by_budget = differ_in_budget(ctx, &budgeted);
         let used = if by_budget { &budgeted } else { members };
         let schedules: Vec<String> = {
             let mut v: Vec<String> = Vec::new();
@@ -343,6 +324,29 @@ fn recovered_plots(
     }
     specs.extend(figure_ones(baseline, &curves, taken));
     Ok(specs)
+}
+
+/// Whether a recovered-fraction plot over the `budgeted` cells goes against the budget: only
+/// where the plotted cells differ in it (one budget at several q plots against q). A budget-0
+/// cell (a random-point control) counts only where it has a recovered fraction, i.e. a point
+/// to draw; otherwise it would put a lone budget on the axis.
+fn differ_in_budget(ctx: &RecoveredCtx<'_, '_>, budgeted: &[usize]) -> bool {
+    let plotted = |ci: usize| {
+        let id = &ctx.cells[ci].spec.id;
+        ctx.main
+            .iter()
+            .any(|r| &r.cell == id && r.recovered.coverage.is_some())
+    };
+    let mut budgets: Vec<f64> = budgeted
+        .iter()
+        .filter_map(|&ci| {
+            let b = ctx.cells[ci].spec.budget()?;
+            (b > 0.0 || plotted(ci)).then_some(b)
+        })
+        .collect();
+    budgets.sort_by(f64::total_cmp);
+    budgets.dedup();
+    budgets.len() >= 2
 }
 
 /// The two series of one arm on a recovered-fraction plot over the cells `used` (only those

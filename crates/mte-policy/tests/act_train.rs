@@ -210,3 +210,122 @@ fn bad_settings_are_typed_errors() {
     let e = train(&data(), bad, &tc, dir.path(), &mut |_, _, _| {}).expect_err("heads");
     assert!(e.to_string().contains("n_heads"), "{e}");
 }
+
+/// The CVAE's gradient path, which a collapsed latent (KL 0.000 in every keypoint ACT trained
+/// here) could hide: with the KL term off, the L1 term alone reaches every variable of the CVAE
+/// encoder, and its gradient on the latent's output projection agrees with a central finite
+/// difference of the loss.
+#[test]
+fn the_l1_term_alone_reaches_the_cvae_encoder() {
+    use candle_core::{DType, Device, Tensor};
+    use mte_policy::act::ActNet;
+    use mte_policy::act::model::{ActInputs, VaeInput};
+    use rand::Rng;
+
+    let varmap = candle_nn::VarMap::new();
+    let vb = mte_policy::init::seeded_var_builder(&varmap, 7, DType::F32, &Device::Cpu);
+    let config = ActConfig {
+        kl_weight: 0.0,
+        dropout: 0.0,
+        ..tiny()
+    };
+    let net = ActNet::new(config, vb.pp("model")).expect("net");
+    let mut rng = seeded_rng(11);
+    let mut draw = |shape: &[usize]| {
+        let n = shape.iter().product();
+        let v: Vec<f32> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+        Tensor::from_vec(v, shape, &Device::Cpu).expect("tensor")
+    };
+    let (state, env, target, eps) = (
+        draw(&[4, 2]),
+        draw(&[4, 16]),
+        draw(&[4, 8, 2]),
+        draw(&[4, 4]),
+    );
+    let is_pad = Tensor::zeros((4, 8), DType::F32, &Device::Cpu).expect("pad");
+    let loss = || {
+        let inputs = ActInputs {
+            state: Some(&state),
+            env: Some(&env),
+            images: &[],
+            features: &[],
+        };
+        let vae = VaeInput {
+            actions: &target,
+            is_pad: &is_pad,
+            eps: &eps,
+        };
+        let out = net.forward(&inputs, Some(&vae), None).expect("forward");
+        net.loss(&out, &target, &is_pad).expect("loss")
+    };
+    let (total, l1, _) = loss();
+    assert_eq!(
+        total.to_scalar::<f32>().expect("scalar"),
+        l1,
+        "KL weight 0: the loss is L1"
+    );
+    let grads = total.backward().expect("backward");
+
+    let vars = varmap.data().lock().expect("vars").clone();
+    let vae: Vec<_> = vars
+        .iter()
+        .filter(|(n, _)| n.starts_with("model.vae_encoder"))
+        .collect();
+    assert!(
+        vae.len() >= 8,
+        "CVAE variables: {:?}",
+        vae.iter().map(|v| v.0).collect::<Vec<_>>()
+    );
+    for (name, var) in &vae {
+        let g = grads
+            .get(var.as_tensor())
+            .unwrap_or_else(|| panic!("no gradient for {name}"));
+        let norm = g
+            .sqr()
+            .and_then(|s| s.sum_all())
+            .and_then(|s| s.to_scalar::<f32>());
+        assert!(norm.expect("norm") > 0.0, "zero gradient for {name}");
+    }
+
+    // A central difference at the output projection's entry of largest gradient. Tolerance:
+    // float32 losses of order 1 carry rounding of about 1e-7, which a step of 2e-3 turns into
+    // about 1e-4 of the difference quotient; the entry's gradient is of order 1e-2 or more, and a
+    // broken path (no gradient, or the wrong one) misses by 100% of it.
+    let (_, w) = vae
+        .iter()
+        .find(|(n, _)| n.as_str() == "model.vae_encoder_latent_output_proj.weight")
+        .expect("output projection");
+    let g: Vec<f32> = grads
+        .get(w.as_tensor())
+        .expect("grad")
+        .flatten_all()
+        .and_then(|t| t.to_vec1())
+        .expect("vec");
+    let k = (0..g.len())
+        .max_by(|&a, &b| g[a].abs().total_cmp(&g[b].abs()))
+        .expect("entry");
+    let base: Vec<f32> = w
+        .as_tensor()
+        .flatten_all()
+        .and_then(|t| t.to_vec1())
+        .expect("w");
+    let at = |delta: f32| {
+        let mut v = base.clone();
+        v[k] += delta;
+        w.set(&Tensor::from_vec(v, w.as_tensor().shape(), &Device::Cpu).expect("t"))
+            .expect("set");
+        loss().1
+    };
+    let h = 1e-3;
+    let fd = (at(h) - at(-h)) / (2.0 * h);
+    assert!(
+        g[k].abs() > 1e-2,
+        "largest gradient entry too small to check: {}",
+        g[k]
+    );
+    assert!(
+        (fd - g[k]).abs() <= 0.05 * g[k].abs() + 2e-3,
+        "finite difference {fd} against gradient {}",
+        g[k]
+    );
+}

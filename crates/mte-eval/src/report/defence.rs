@@ -92,45 +92,15 @@ pub(super) fn build(
     arms: &[String],
     notes: &mut Vec<String>,
 ) -> Result<DefenceTable, ReportError> {
-    for (role, name) in [
-        ("undefended", &pair.undefended),
-        ("defended", &pair.defended),
-    ] {
-        if !cells.iter().any(|c| is_policy(c, name)) {
-            let mut available: Vec<&str> = Vec::new();
-            for c in cells {
-                let label = policy_label(&c.spec.policy);
-                if !available.contains(&label) {
-                    available.push(label);
-                }
-            }
-            return Err(ReportError::UnknownPolicy {
-                role,
-                policy: name.clone(),
-                available: available.join(", "),
-            });
-        }
-    }
-    let find = |name: &str, corruption: &str, h: usize, span: Option<usize>| {
-        cells.iter().find(|c| {
-            is_policy(c, name)
-                && c.spec.h == h
-                && c.spec.span == span
-                && c.spec.corruption.to_string() == corruption
-        })
-    };
-    let clean =
-        |name: &str, h: usize, span: Option<usize>, arm: &str| match find(name, "clean", h, span) {
-            Some(c) => clean_ref(c, arm),
-            None => Ok(None),
-        };
+    require_policy(cells, "undefended", &pair.undefended)?;
+    require_policy(cells, "defended", &pair.defended)?;
     let mut rows = Vec::new();
     for d in cells
         .iter()
         .filter(|c| !c.is_clean() && is_policy(c, &pair.defended))
     {
         let corruption = d.spec.corruption.to_string();
-        let Some(u) = find(&pair.undefended, &corruption, d.spec.h, d.spec.span) else {
+        let Some(u) = find(cells, &pair.undefended, &corruption, d) else {
             notes.push(format!(
                 "defence table: no cell of `{}` with corruption {corruption} and h = {} for `{}`",
                 pair.undefended, d.spec.h, d.spec.id
@@ -138,57 +108,7 @@ pub(super) fn build(
             continue;
         };
         for arm in arms.iter().filter(|a| d.has(a) && u.has(a)) {
-            let what = format!("defence `{}` vs `{}`, arm `{arm}`", d.spec.id, u.spec.id);
-            let (ue, de) = (u.episodes(arm), d.episodes(arm));
-            let comparison = compare(ue, de, arm, &what, d.mcnemar)?;
-            let (us, ds) = (
-                (success_count(ue) as u64, ue.len() as u64),
-                (success_count(de) as u64, de.len() as u64),
-            );
-            let ztest_p = if us.1 > 0 && ds.1 > 0 {
-                Some(
-                    two_proportion_ztest(ds.0, ds.1, us.0, us.1)
-                        .map_err(stats_err(what.clone()))?
-                        .p_value,
-                )
-            } else {
-                None
-            };
-            let undefended_clean = clean(&pair.undefended, d.spec.h, d.spec.span, arm)?;
-            let den = denominator(
-                u,
-                find(&pair.undefended, "clean", d.spec.h, d.spec.span),
-                arm,
-            )?;
-            let defended_clean = clean(&pair.defended, d.spec.h, d.spec.span, arm)?;
-            let no_eps: &[&EpisodeRecord] = &[];
-            let on_clean = |name: &str| {
-                find(name, "clean", d.spec.h, d.spec.span).map_or(no_eps, |c| c.episodes(arm))
-            };
-            let recovered = recovered(
-                RecoveryEpisodes {
-                    clean: on_clean(&pair.undefended),
-                    base: ue,
-                    other: de,
-                    other_clean: on_clean(&pair.defended),
-                },
-                den,
-            );
-            rows.push(DefenceRow {
-                corruption: corruption.clone(),
-                h: d.spec.h,
-                arm: arm.clone(),
-                undefended_cell: u.spec.id.clone(),
-                defended_cell: d.spec.id.clone(),
-                clean: undefended_clean,
-                defended_clean,
-                comparison,
-                undefended_success: us,
-                defended_success: ds,
-                ztest_p,
-                holm_wilcoxon: None,
-                recovered,
-            });
+            rows.push(row(cells, pair, Compared { u, d }, arm)?);
         }
     }
     let pw: Vec<Option<f64>> = rows.iter().map(|r| r.comparison.wilcoxon_p).collect();
@@ -202,6 +122,107 @@ pub(super) fn build(
         undefended: pair.undefended.clone(),
         defended: pair.defended.clone(),
         rows,
+    })
+}
+
+/// An error naming the policies the cells have, unless one of them is `name`.
+fn require_policy(
+    cells: &[CellData<'_>],
+    role: &'static str,
+    name: &str,
+) -> Result<(), ReportError> {
+    if cells.iter().any(|c| is_policy(c, name)) {
+        return Ok(());
+    }
+    let mut available: Vec<&str> = Vec::new();
+    for c in cells {
+        let label = policy_label(&c.spec.policy);
+        if !available.contains(&label) {
+            available.push(label);
+        }
+    }
+    Err(ReportError::UnknownPolicy {
+        role,
+        policy: name.to_owned(),
+        available: available.join(", "),
+    })
+}
+
+/// The cell of policy `name` with the text form `corruption` at the stride and span of `like`.
+fn find<'c, 'a>(
+    cells: &'c [CellData<'a>],
+    name: &str,
+    corruption: &str,
+    like: &CellData<'_>,
+) -> Option<&'c CellData<'a>> {
+    cells.iter().find(|c| {
+        is_policy(c, name)
+            && c.spec.h == like.spec.h
+            && c.spec.span == like.spec.span
+            && c.spec.corruption.to_string() == corruption
+    })
+}
+
+/// The undefended (`u`) and the defended (`d`) policy's cells under one corruption.
+#[derive(Clone, Copy)]
+struct Compared<'c, 'a> {
+    u: &'c CellData<'a>,
+    d: &'c CellData<'a>,
+}
+
+/// One row: the pair's cells under one arm, with both policies' clean cells beside them.
+fn row(
+    cells: &[CellData<'_>],
+    pair: &DefencePair,
+    Compared { u, d }: Compared<'_, '_>,
+    arm: &str,
+) -> Result<DefenceRow, ReportError> {
+    let what = format!("defence `{}` vs `{}`, arm `{arm}`", d.spec.id, u.spec.id);
+    let (ue, de) = (u.episodes(arm), d.episodes(arm));
+    let comparison = compare(ue, de, arm, &what, d.mcnemar)?;
+    let us = (success_count(ue) as u64, ue.len() as u64);
+    let ds = (success_count(de) as u64, de.len() as u64);
+    let ztest_p = if us.1 > 0 && ds.1 > 0 {
+        Some(
+            two_proportion_ztest(ds.0, ds.1, us.0, us.1)
+                .map_err(stats_err(what))?
+                .p_value,
+        )
+    } else {
+        None
+    };
+    let u_clean = find(cells, &pair.undefended, "clean", d);
+    let d_clean = find(cells, &pair.defended, "clean", d);
+    let clean = |c: Option<&CellData<'_>>| c.map_or(Ok(None), |c| clean_ref(c, arm));
+    let (clean_u, den, clean_d) = (
+        clean(u_clean)?,
+        denominator(u, u_clean, arm)?,
+        clean(d_clean)?,
+    );
+    let no_eps: &[&EpisodeRecord] = &[];
+    let recovered = recovered(
+        RecoveryEpisodes {
+            clean: u_clean.map_or(no_eps, |c| c.episodes(arm)),
+            base: ue,
+            other: de,
+            other_clean: d_clean.map_or(no_eps, |c| c.episodes(arm)),
+        },
+        den,
+    );
+    Ok(DefenceRow {
+        corruption: d.spec.corruption.to_string(),
+        h: d.spec.h,
+        arm: arm.to_owned(),
+        undefended_cell: u.spec.id.clone(),
+        defended_cell: d.spec.id.clone(),
+        clean: clean_u,
+        defended_clean: clean_d,
+        comparison,
+        undefended_success: us,
+        defended_success: ds,
+        ztest_p,
+        holm_wilcoxon: None,
+        recovered,
     })
 }
 

@@ -37,17 +37,12 @@ fn span_plots(
     cells: &[CellData<'_>],
     taken: &mut HashSet<String>,
 ) -> Result<Vec<PlotSpec>, ReportError> {
-    let mut groups: Vec<((String, usize), Vec<usize>)> = Vec::new();
-    for (ci, c) in cells.iter().enumerate() {
-        if !c.is_clean() || c.spec.span.is_none() {
-            continue;
-        }
-        let key = (c.spec.policy_key(), c.spec.h);
-        match groups.iter_mut().find(|(k, _)| *k == key) {
-            Some((_, v)) => v.push(ci),
-            None => groups.push((key, vec![ci])),
-        }
-    }
+    let spanned: Vec<usize> = (0..cells.len())
+        .filter(|&ci| cells[ci].is_clean() && cells[ci].spec.span.is_some())
+        .collect();
+    let groups = group_by(&spanned, |ci| {
+        (cells[ci].spec.policy_key(), cells[ci].spec.h)
+    });
     let mut specs = Vec::new();
     for ((policy, h), mut members) in groups.into_iter().filter(|(_, m)| m.len() >= 2) {
         members.sort_by_key(|&ci| cells[ci].spec.span);
@@ -69,23 +64,53 @@ fn span_plots(
             }
         }
         let label = policy_label(&policy);
-        specs.push(PlotSpec {
-            name: unique(
+        specs.push(unit_plot(
+            unique(
                 taken,
                 format!("span-{}", slug(&format!("{label}-clean-h{h}"))),
             ),
-            title: format!("Clean mean max coverage against span, {label}, h = {h}"),
-            x_label: "span (executable rows of each chunk used)".into(),
-            y_label: "mean max coverage (± SE)".into(),
-            integer_x: true,
-            log_x: false,
-            y_include: (0.0, 1.0),
-            y_refs: vec![],
+            format!("Clean mean max coverage against span, {label}, h = {h}"),
+            (
+                "span (executable rows of each chunk used)",
+                "mean max coverage (± SE)",
+            ),
             series,
-        });
+        ));
     }
     Ok(specs)
 }
+
+/// The cells `indices` grouped by `key`, groups in order of first appearance.
+fn group_by<K: PartialEq>(indices: &[usize], key: impl Fn(usize) -> K) -> Vec<(K, Vec<usize>)> {
+    let mut groups: Vec<(K, Vec<usize>)> = Vec::new();
+    for &ci in indices {
+        let k = key(ci);
+        match groups.iter_mut().find(|(g, _)| *g == k) {
+            Some((_, v)) => v.push(ci),
+            None => groups.push((k, vec![ci])),
+        }
+    }
+    groups
+}
+
+/// A plot on an integer x axis with y in the unit interval (coverage, success rate); `axes`
+/// are the x and y labels.
+fn unit_plot(name: String, title: String, axes: (&str, &str), series: Vec<Series>) -> PlotSpec {
+    PlotSpec {
+        name,
+        title,
+        x_label: axes.0.into(),
+        y_label: axes.1.into(),
+        integer_x: true,
+        log_x: false,
+        y_include: (0.0, 1.0),
+        y_refs: vec![],
+        series,
+    }
+}
+
+/// The x label of plots against q.
+const Q_AXIS: &str = "q (corrupted queries per period)";
 
 /// What the recovered-fraction plots read.
 struct RecoveredCtx<'c, 'a> {
@@ -95,35 +120,25 @@ struct RecoveredCtx<'c, 'a> {
     defence: Option<&'c DefenceTable>,
 }
 
-/// Plots (a): coverage and success against q, per (policy, fault, schedule kind, h).
+/// Plots (a): coverage and success against q, per (policy, fault, schedule kind, h, span,
+/// burst phase): bursts at another phase are another curve, not more points at the same q.
 fn coverage_plots(
     cells: &[CellData<'_>],
     corrupted: &[usize],
     taken: &mut HashSet<String>,
 ) -> Result<Vec<PlotSpec>, ReportError> {
-    let mut specs = Vec::new();
-    // (a) Coverage and success against q, per (policy, fault, schedule kind, h, span,
-    // burst phase): bursts at another phase are another curve, not more points at the same q.
-    type QGroup = (
-        (String, String, String, usize, Option<usize>, usize),
-        Vec<usize>,
-    );
-    let mut groups: Vec<QGroup> = Vec::new();
-    for &ci in corrupted {
+    let groups = group_by(corrupted, |ci| {
         let s = cells[ci].spec;
-        let key = (
+        (
             s.policy_key(),
             s.corruption.fault.to_string(),
             kind_tag(&s.corruption.schedule),
             s.h,
             s.span,
             burst_phase(&s.corruption.schedule),
-        );
-        match groups.iter_mut().find(|(k, _)| *k == key) {
-            Some((_, v)) => v.push(ci),
-            None => groups.push((key, vec![ci])),
-        }
-    }
+        )
+    });
+    let mut specs = Vec::new();
     for ((policy, fault, kind, h, span, phase), members) in &groups {
         let mut points: Vec<(usize, usize)> =
             members.iter().map(|&ci| (cells[ci].spec.q(), ci)).collect();
@@ -131,40 +146,7 @@ fn coverage_plots(
             points.push((0, cj));
         }
         points.sort_by_key(|&(q, ci)| (q, ci));
-        let all: Vec<usize> = points.iter().map(|p| p.1).collect();
-        let arms = arms_of(cells, &all);
-        let (mut cov, mut succ) = (Vec::new(), Vec::new());
-        for arm in &arms {
-            let (mut pc, mut ps) = (Vec::new(), Vec::new());
-            for &(q, ci) in &points {
-                let eps = cells[ci].episodes(arm);
-                let what = format!("cell `{}`, arm `{arm}`", cells[ci].spec.id);
-                if let Some(e) = Estimate::of(&coverages(eps), &what)? {
-                    pc.push(Point {
-                        x: q as f64,
-                        y: e.mean,
-                        err: e.se,
-                    });
-                    let rate = success_count(eps) as f64 / eps.len() as f64;
-                    let se = binomial_se(rate, eps.len() as u64).map_err(stats_err(&what))?;
-                    ps.push(Point {
-                        x: q as f64,
-                        y: rate,
-                        err: Some(se),
-                    });
-                }
-            }
-            if !pc.is_empty() {
-                cov.push(Series {
-                    label: arm.clone(),
-                    points: pc,
-                });
-                succ.push(Series {
-                    label: arm.clone(),
-                    points: ps,
-                });
-            }
-        }
+        let (cov, succ) = q_series(cells, &points)?;
         let label = policy_label(policy);
         let stem = slug(&format!(
             "{label}-{fault}-{kind}{}-h{h}{}",
@@ -176,68 +158,96 @@ fn coverage_plots(
             phase_title(*phase),
             span_title(*span)
         );
-        let (cov_title, succ_title) = (
+        specs.push(unit_plot(
+            unique(taken, format!("coverage-{stem}")),
             format!("Mean max coverage, {title}"),
+            (Q_AXIS, "mean max coverage (± SE)"),
+            cov,
+        ));
+        specs.push(unit_plot(
+            unique(taken, format!("success-{stem}")),
             format!("Success rate, {title}"),
-        );
-        let x_label = "q (corrupted queries per period)".to_string();
-        specs.push(PlotSpec {
-            name: unique(taken, format!("coverage-{stem}")),
-            title: cov_title,
-            x_label: x_label.clone(),
-            y_label: "mean max coverage (± SE)".into(),
-            integer_x: true,
-            log_x: false,
-            y_include: (0.0, 1.0),
-            y_refs: vec![],
-            series: cov,
-        });
-        specs.push(PlotSpec {
-            name: unique(taken, format!("success-{stem}")),
-            title: succ_title,
-            x_label,
-            y_label: "success rate (± binomial SE)".into(),
-            integer_x: true,
-            log_x: false,
-            y_include: (0.0, 1.0),
-            y_refs: vec![],
-            series: succ,
-        });
+            (Q_AXIS, "success rate (± binomial SE)"),
+            succ,
+        ));
     }
-
     Ok(specs)
 }
 
+/// Coverage and success series against q over `points` (q, cell), one of each per arm that
+/// has a point.
+fn q_series(
+    cells: &[CellData<'_>],
+    points: &[(usize, usize)],
+) -> Result<(Vec<Series>, Vec<Series>), ReportError> {
+    let all: Vec<usize> = points.iter().map(|p| p.1).collect();
+    let (mut cov, mut succ) = (Vec::new(), Vec::new());
+    for arm in arms_of(cells, &all) {
+        let (mut pc, mut ps) = (Vec::new(), Vec::new());
+        for &(q, ci) in points {
+            if let Some((c, s)) = q_point(&cells[ci], &arm, q as f64)? {
+                pc.push(c);
+                ps.push(s);
+            }
+        }
+        if !pc.is_empty() {
+            cov.push(Series {
+                label: arm.clone(),
+                points: pc,
+            });
+            succ.push(Series {
+                label: arm,
+                points: ps,
+            });
+        }
+    }
+    Ok((cov, succ))
+}
+
+/// One cell's mean max coverage (± SE) and success rate (± binomial SE) under `arm` at `x`;
+/// `None` where the arm has no episode there.
+fn q_point(cell: &CellData<'_>, arm: &str, x: f64) -> Result<Option<(Point, Point)>, ReportError> {
+    let eps = cell.episodes(arm);
+    let what = format!("cell `{}`, arm `{arm}`", cell.spec.id);
+    let Some(e) = Estimate::of(&coverages(eps), &what)? else {
+        return Ok(None);
+    };
+    let rate = success_count(eps) as f64 / eps.len() as f64;
+    let se = binomial_se(rate, eps.len() as u64).map_err(stats_err(&what))?;
+    let coverage = Point {
+        x,
+        y: e.mean,
+        err: e.se,
+    };
+    let success = Point {
+        x,
+        y: rate,
+        err: Some(se),
+    };
+    Ok(Some((coverage, success)))
+}
+
 /// Plots (b): the recovered fraction against the attack budget (or q), per (policy, fault
-/// kind, h); only cells whose denominator is significantly above zero.
+/// kind, h, span, burst phase); only cells whose denominator is significantly above zero.
 fn recovered_plots(
     ctx: &RecoveredCtx<'_, '_>,
     corrupted: &[usize],
     taken: &mut HashSet<String>,
 ) -> Result<Vec<PlotSpec>, ReportError> {
     let (cells, baseline) = (ctx.cells, ctx.baseline);
-    let mut specs = Vec::new();
-    // (b) Recovered fraction against the attack budget (or q), per (policy, fault kind, h,
-    // span, burst phase).
-    type KindGroup = ((String, String, usize, Option<usize>, usize), Vec<usize>);
-    let mut groups: Vec<KindGroup> = Vec::new();
-    for &ci in corrupted {
+    let groups = group_by(corrupted, |ci| {
         let s = cells[ci].spec;
-        let key = (
+        (
             s.policy_key(),
             kind_tag(&s.corruption.fault),
             s.h,
             s.span,
             burst_phase(&s.corruption.schedule),
-        );
-        match groups.iter_mut().find(|(k, _)| *k == key) {
-            Some((_, v)) => v.push(ci),
-            None => groups.push((key, vec![ci])),
-        }
-    }
-    let mut curves: Vec<Curve> = Vec::new();
-    for ((policy, kind, h, span, phase), members) in &groups {
-        let (tag, kind) = (kind, format!("{kind}{}", phase_title(*phase)));
+        )
+    });
+    let (mut specs, mut curves) = (Vec::new(), Vec::new());
+    for ((policy, tag, h, span, phase), members) in &groups {
+        let kind = format!("{tag}{}", phase_title(*phase));
         let budgeted: Vec<usize> = members
             .iter()
             .copied()
@@ -245,30 +255,7 @@ fn recovered_plots(
             .collect();
         let by_budget = differ_in_budget(ctx, &budgeted);
         let used = if by_budget { &budgeted } else { members };
-        let schedules: Vec<String> = {
-            let mut v: Vec<String> = Vec::new();
-            for &ci in used {
-                let s = schedule_label(cells[ci].spec);
-                if !v.contains(&s) {
-                    v.push(s);
-                }
-            }
-            v
-        };
-        let split = by_budget && schedules.len() > 1;
-        let mut series: Vec<Series> = Vec::new();
-        for arm in arms_of(cells, used).iter().filter(|a| *a != baseline) {
-            let scheds = if split {
-                schedules.clone()
-            } else {
-                vec![String::new()]
-            };
-            for sched in scheds {
-                let only = split.then_some(sched.as_str());
-                series.extend(arm_series(ctx, used, by_budget, arm, only));
-            }
-        }
-        series.extend(defended_series(ctx, policy, used, by_budget));
+        let series = recovered_series(ctx, policy, used, by_budget);
         if series.is_empty() {
             continue;
         }
@@ -278,7 +265,6 @@ fn recovered_plots(
             .iter()
             .flat_map(|s| s.points.iter().map(|p| p.x))
             .collect();
-        let log_x = by_budget && spans_decades(&xs);
         let base = xs
             .iter()
             .copied()
@@ -293,18 +279,13 @@ fn recovered_plots(
             });
         }
         let label = policy_label(policy);
+        let stem = format!(
+            "{label}-{tag}{}-h{h}{}",
+            phase_suffix(*phase),
+            span_suffix(*span)
+        );
         specs.push(PlotSpec {
-            name: unique(
-                taken,
-                format!(
-                    "recovered-{}",
-                    slug(&format!(
-                        "{label}-{tag}{}-h{h}{}",
-                        phase_suffix(*phase),
-                        span_suffix(*span)
-                    ))
-                ),
-            ),
+            name: unique(taken, format!("recovered-{}", slug(&stem))),
             title: format!(
                 "Recovered fraction vs {baseline}, {label}: {kind}, h = {h}{}",
                 span_title(*span)
@@ -312,11 +293,11 @@ fn recovered_plots(
             x_label: if by_budget {
                 cells[used[0]].spec.corruption.fault.budget_axis().into()
             } else {
-                "q (corrupted queries per period)".into()
+                Q_AXIS.into()
             },
             y_label: "recovered fraction (± paired jackknife SE)".into(),
             integer_x: !by_budget,
-            log_x,
+            log_x: by_budget && spans_decades(&xs),
             y_include: (0.0, 1.0),
             y_refs: vec![0.0, 1.0],
             series,
@@ -324,6 +305,40 @@ fn recovered_plots(
     }
     specs.extend(figure_ones(baseline, &curves, taken));
     Ok(specs)
+}
+
+/// The series of one recovered-fraction plot over the cells `used`: each robust arm's (split
+/// by schedule where the plot goes against the budget and the cells have several schedules),
+/// then the defended policy's, where a defence table names this `policy` as the undefended one.
+fn recovered_series(
+    ctx: &RecoveredCtx<'_, '_>,
+    policy: &str,
+    used: &[usize],
+    by_budget: bool,
+) -> Vec<Series> {
+    let mut schedules: Vec<String> = Vec::new();
+    for &ci in used {
+        let s = schedule_label(ctx.cells[ci].spec);
+        if !schedules.contains(&s) {
+            schedules.push(s);
+        }
+    }
+    let split = by_budget && schedules.len() > 1;
+    let mut series: Vec<Series> = Vec::new();
+    for arm in arms_of(ctx.cells, used)
+        .iter()
+        .filter(|a| *a != ctx.baseline)
+    {
+        if split {
+            for sched in &schedules {
+                series.extend(arm_series(ctx, used, by_budget, arm, Some(sched)));
+            }
+        } else {
+            series.extend(arm_series(ctx, used, by_budget, arm, None));
+        }
+    }
+    series.extend(defended_series(ctx, policy, used, by_budget));
+    series
 }
 
 /// Whether a recovered-fraction plot over the `budgeted` cells goes against the budget: only

@@ -1566,19 +1566,22 @@ fn figure2(
     best.map(|(_, f)| f)
 }
 
+/// The distinct `items`, each at its first occurrence (linear: the lists are short).
+fn distinct<T: PartialEq>(items: impl IntoIterator<Item = T>) -> Vec<T> {
+    let mut out: Vec<T> = Vec::new();
+    for item in items {
+        if !out.contains(&item) {
+            out.push(item);
+        }
+    }
+    out
+}
+
 /// Arms of `members`, in their order.
 fn arms_of(cells: &[CellData<'_>], members: &[usize]) -> Vec<String> {
     let mut sorted = members.to_vec();
     sorted.sort_unstable();
-    let mut arms: Vec<String> = Vec::new();
-    for &ci in &sorted {
-        for a in &cells[ci].arms {
-            if !arms.contains(a) {
-                arms.push(a.clone());
-            }
-        }
-    }
-    arms
+    distinct(sorted.iter().flat_map(|&ci| cells[ci].arms.iter().cloned()))
 }
 
 /// The clean cell of the same policy and h as cell `ci`.
@@ -3023,5 +3026,12 @@ mod tests {
         assert_eq!(html_inline("odd ` tick"), "odd ` tick");
         assert_eq!(policy_label("a/b/pusht/"), "pusht");
         assert_eq!(slug("a b/c"), "a_b_c");
+    }
+
+    #[test]
+    fn distinct_keeps_first_occurrences_in_order() {
+        assert_eq!(distinct([3, 1, 3, 2, 1]), vec![3, 1, 2]);
+        assert_eq!(distinct(["b", "a", "b"]), vec!["b", "a"]);
+        assert!(distinct(Vec::<u8>::new()).is_empty());
     }
 }

@@ -21,8 +21,8 @@ use serde::Serialize;
 
 use super::{
     Block, CellData, CleanRef, Comparison, EpisodeRecord, Recovered, RecoveryEpisodes, ReportError,
-    clean_ref, code, compare, delta, denominator, est, f3, fraction_se, holm_opt, opt_p, pct,
-    policy_label, recovered, stats_err, success_count, table,
+    clean_ref, code, compare, delta, denominator, distinct, est, f3, fraction_se, holm_opt, opt_p,
+    pct, policy_label, recovered, stats_err, success_count, table,
 };
 use crate::record::normalise_label;
 
@@ -134,13 +134,7 @@ fn require_policy(
     if cells.iter().any(|c| is_policy(c, name)) {
         return Ok(());
     }
-    let mut available: Vec<&str> = Vec::new();
-    for c in cells {
-        let label = policy_label(&c.spec.policy);
-        if !available.contains(&label) {
-            available.push(label);
-        }
-    }
+    let available = distinct(cells.iter().map(|c| policy_label(&c.spec.policy)));
     Err(ReportError::UnknownPolicy {
         role,
         policy: name.to_owned(),

@@ -316,13 +316,7 @@ fn recovered_series(
     used: &[usize],
     by_budget: bool,
 ) -> Vec<Series> {
-    let mut schedules: Vec<String> = Vec::new();
-    for &ci in used {
-        let s = schedule_label(ctx.cells[ci].spec);
-        if !schedules.contains(&s) {
-            schedules.push(s);
-        }
-    }
+    let schedules = distinct(used.iter().map(|&ci| schedule_label(ctx.cells[ci].spec)));
     let split = by_budget && schedules.len() > 1;
     let mut series: Vec<Series> = Vec::new();
     for arm in arms_of(ctx.cells, used)
@@ -401,13 +395,7 @@ fn arm_series(
 
 /// Figure 1 for every policy with two or more budget curves, in the curves' order.
 fn figure_ones(baseline: &str, curves: &[Curve], taken: &mut HashSet<String>) -> Vec<PlotSpec> {
-    let mut policies: Vec<&str> = Vec::new();
-    for c in curves {
-        if !policies.contains(&c.policy.as_str()) {
-            policies.push(&c.policy);
-        }
-    }
-    policies
+    distinct(curves.iter().map(|c| c.policy.as_str()))
         .into_iter()
         .filter_map(|policy| {
             let own: Vec<&Curve> = curves.iter().filter(|c| c.policy == policy).collect();

@@ -1,7 +1,7 @@
 //! ROC plots of the runtime monitors: one plot per (monitor, arm), one curve per corrupted
 //! cell against its clean reference, beside the chance diagonal.
 
-use super::{Plot, PlotSpec, Point, ReportError, Series};
+use super::{Plot, PlotSpec, Point, ReportError, Series, distinct};
 use crate::label::slug;
 use crate::monitoring::MonitorRow;
 
@@ -9,12 +9,11 @@ use crate::monitoring::MonitorRow;
 /// cells, cells without a clean reference) are left out, and so is a (monitor, arm) with no
 /// curve at all. File stems `roc-<monitor>-<arm>`.
 pub fn roc_plots(rows: &[MonitorRow]) -> Result<Vec<Plot>, ReportError> {
-    let mut keys: Vec<(&str, &str)> = Vec::new();
-    for r in rows.iter().filter(|r| !r.roc.is_empty()) {
-        if !keys.contains(&(r.monitor.as_str(), r.arm.as_str())) {
-            keys.push((&r.monitor, &r.arm));
-        }
-    }
+    let keys = distinct(
+        rows.iter()
+            .filter(|r| !r.roc.is_empty())
+            .map(|r| (r.monitor.as_str(), r.arm.as_str())),
+    );
     keys.into_iter()
         .map(|(monitor, arm)| {
             let mut series: Vec<Series> = rows

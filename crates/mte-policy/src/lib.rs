@@ -10,7 +10,9 @@
 //!   encoder defence); its modules are re-exported here under their old paths.
 //! - Shared pieces: [`vision`] (the ResNet-18-GN encoder), [`kernels`] (fused CPU kernels with
 //!   backward passes), [`normalize`], [`init`] (seeded initialisation; candle's own CPU
-//!   initialisers use a global RNG), [`memory`] (an opt-in allocator setting for binaries).
+//!   initialisers use a global RNG), `training` (the loop's model-independent pieces:
+//!   per-step random streams, checkpoint schedule, gradient clipping, the loss trace),
+//!   [`memory`] (an opt-in allocator setting for binaries).
 //!
 //! Conventions: observations and actions unnormalised in the environment's units (PushT:
 //! pixels of the 512 x 512 workspace), images RGB u8 HWC; every random draw comes from an
@@ -29,6 +31,7 @@ pub mod memory;
 pub mod normalize;
 pub mod overrides;
 pub mod policy;
+mod training;
 pub mod vision;
 
 pub use diffusion::{

@@ -178,6 +178,16 @@ fn trains_checkpoints_loads_and_resumes() {
     };
     let r2 = train(&data(), tiny(), &more, dir.path(), &mut |_, _, _| {}).expect("resume");
     assert_eq!((r2.steps_run, r2.step), (10, 70));
+    assert!(
+        r2.final_l1.is_some_and(|l| l.is_finite() && l > 0.0),
+        "{r2:?}"
+    );
+    let r3 = train(&data(), tiny(), &more, dir.path(), &mut |_, _, _| {}).expect("done");
+    assert_eq!(
+        (r3.steps_run, r3.step, r3.final_l1, r3.final_kld),
+        (0, 70, None, None),
+        "a run at its last step reports no loss"
+    );
     let again = tempfile::tempdir().expect("tmp");
     train(&data(), tiny(), &tc, again.path(), &mut |_, _, _| {}).expect("again");
     let w = |d: &std::path::Path| std::fs::read(d.join("model.safetensors")).expect("weights");

@@ -120,6 +120,10 @@ fn training_is_deterministic_loads_and_resumes() {
     // Resume: the state says 40; asking for 50 runs 10 more.
     let r = train(&config(), &tc(50), &data(), &a, &Device::Cpu, &|_, _, _| {}).expect("resume");
     assert_eq!((r.steps_run, r.step), (10, 50));
+    assert!(r.final_loss.is_some_and(f32::is_finite), "{r:?}");
+    // Asking again for 50 runs nothing, and reports no loss rather than a number.
+    let r = train(&config(), &tc(50), &data(), &a, &Device::Cpu, &|_, _, _| {}).expect("done");
+    assert_eq!((r.steps_run, r.step, r.final_loss), (0, 50, None));
 }
 
 #[test]

@@ -151,11 +151,11 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
             if !cli.quiet {
                 writeln!(
                     out,
-                    "trained {} steps (now at {}) in {:.0} s, final loss {:.4} -> {}",
+                    "trained {} steps (now at {}) in {:.0} s, final loss {} -> {}",
                     report.steps_run,
                     report.step,
                     report.seconds,
-                    report.final_loss,
+                    loss_text(report.final_loss),
                     a.out.display()
                 )?;
             }
@@ -213,12 +213,12 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
         Format::Json => writeln!(out, "{}", serde_json::to_string(&report)?)?,
         Format::Text if !cli.quiet => writeln!(
             out,
-            "trained {} steps (now at {}) in {:.0} s, final l1 {:.4} kld {:.4} -> {}",
+            "trained {} steps (now at {}) in {:.0} s, final l1 {} kld {} -> {}",
             report.steps_run,
             report.step,
             report.seconds,
-            report.final_l1,
-            report.final_kld,
+            loss_text(report.final_l1),
+            loss_text(report.final_kld),
             a.out.display()
         )?,
         Format::Text => {}
@@ -291,4 +291,9 @@ pub fn encoder(cli: &Cli, a: &TrainEncoderArgs) -> Result<()> {
 /// `mte data generate` dataset.
 pub fn load_train_data(dir: &std::path::Path, config: &DiffusionConfig) -> Result<TrainData> {
     Ok(train_data::load(dir, config, train_data::Extra::default())?)
+}
+
+/// A loss for the terminal, four decimals; `-` when the call ran no step.
+fn loss_text(loss: Option<f32>) -> String {
+    loss.map_or_else(|| "-".to_owned(), |l| format!("{l:.4}"))
 }

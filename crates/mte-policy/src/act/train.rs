@@ -9,6 +9,7 @@
 use std::cell::RefCell;
 use std::path::{Path, PathBuf};
 
+use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
 use rand::{Rng, SeedableRng};
@@ -20,7 +21,8 @@ use super::config::ActConfig;
 use super::model::{Dropout, VaeInput};
 use super::policy::{ActPolicy, ObsTensors};
 use crate::error::{PolicyError, config_err};
-use crate::train::{TrainData, clip_gradients};
+use crate::train::TrainData;
+use crate::training::{LossTrace, checkpoint_due, clip_gradients, step_rng};
 
 /// ACT training settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -88,10 +90,11 @@ pub struct ActTrainReport {
     pub steps_run: usize,
     /// The step reached.
     pub step: usize,
-    /// Mean L1 and KL terms over the last 100 steps.
-    pub final_l1: f32,
-    /// Mean KL over the last 100 steps.
-    pub final_kld: f32,
+    /// Mean L1 term over the last 100 steps run by this call (`None` when it ran none: the
+    /// run was already at its last step).
+    pub final_l1: Option<f32>,
+    /// Mean KL term over the same steps.
+    pub final_kld: Option<f32>,
     /// Wall time of this call (s).
     pub seconds: f64,
     /// With `backbone_from` on a fresh run: the converted backbone's relative error against
@@ -264,10 +267,7 @@ pub fn train(
     let varmap = VarMap::new();
     let vb = crate::init::seeded_var_builder(&varmap, train.seed, DType::F32, &Device::Cpu);
     let policy = ActPolicy::new(config.clone(), data.stats.clone(), vb.clone())?;
-    let mut starts = vec![0usize];
-    for l in &data.episode_lengths {
-        starts.push(starts[starts.len() - 1] + l);
-    }
+    let starts = episode_starts(&data.episode_lengths);
     let frames = starts[starts.len() - 1];
     if frames == 0 {
         return Err(config_err("dataset", 0, "at least one frame"));
@@ -284,7 +284,7 @@ pub fn train(
     }
     // A frozen norm reads its statistics when it is built: rebuild on the loaded variables
     // (the same variables; only the norms' derived scale and shift are new).
-    let policy = ActPolicy::new(config.clone(), data.stats.clone(), vb)?;
+    let policy = ActPolicy::new(config, data.stats.clone(), vb)?;
     let (vars, mut backbone) = trainable(&varmap)?;
     let cache = if train.freeze_backbone {
         backbone.clear();
@@ -292,32 +292,107 @@ pub fn train(
     } else {
         None
     };
-    let adamw = |vars: Vec<Var>, lr: f64| {
-        AdamW::new(
-            vars,
-            ParamsAdamW {
+    let mut opt = Optimisers::new(policy.config(), vars, backbone)?;
+    let stepper = Stepper {
+        policy: &policy,
+        data,
+        starts: &starts,
+        cache: cache.as_ref(),
+        train,
+    };
+    let (start_step, mut l1s, mut klds) = (step, LossTrace::default(), LossTrace::default());
+    while step < train.steps {
+        let (l1, kld) = stepper.step(&mut opt, step)?;
+        step += 1;
+        l1s.push(l1);
+        klds.push(kld);
+        progress(step, l1, kld);
+        if checkpoint_due(step, train.checkpoint_every, train.steps) {
+            save(&policy, &varmap, out, step, train)?;
+        }
+    }
+    Ok(ActTrainReport {
+        steps_run: step - start_step,
+        step,
+        final_l1: l1s.recent_mean(),
+        final_kld: klds.recent_mean(),
+        seconds: t0.elapsed().as_secs_f64(),
+        backbone_relative_error,
+    })
+}
+
+/// The first frame of each episode, then the total frame count.
+fn episode_starts(lengths: &[usize]) -> Vec<usize> {
+    let mut starts = vec![0usize];
+    for l in lengths {
+        starts.push(starts[starts.len() - 1] + l);
+    }
+    starts
+}
+
+/// ACT's two AdamW optimisers (LeRobot's parameter groups): the backbone at its own learning
+/// rate, everything else at the main one, both with the config's weight decay.
+struct Optimisers {
+    main: AdamW,
+    backbone: AdamW,
+    /// Every optimised variable, for the global gradient clip.
+    all: Vec<(String, Var)>,
+}
+
+impl Optimisers {
+    fn new(config: &ActConfig, vars: Vec<Var>, backbone: Vec<Var>) -> Result<Self, PolicyError> {
+        let adamw = |vars: Vec<Var>, lr: f64| {
+            let params = ParamsAdamW {
                 lr,
                 weight_decay: config.optimizer_weight_decay,
                 ..ParamsAdamW::default()
-            },
-        )
-    };
-    let named: Vec<(String, Var)> = vars
-        .iter()
-        .chain(&backbone)
-        .map(|v| (String::new(), v.clone()))
-        .collect();
-    let mut opt = adamw(vars, config.optimizer_lr)?;
-    let mut opt_backbone = adamw(backbone, config.optimizer_lr_backbone)?;
-    let (start_step, mut recent) = (step, Vec::<(f32, f32)>::new());
-    while step < train.steps {
-        let mut rng = ChaCha8Rng::seed_from_u64(
-            train.seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-        );
-        let idx: Vec<usize> = (0..train.batch_size)
+            };
+            AdamW::new(vars, params)
+        };
+        let all = vars
+            .iter()
+            .chain(&backbone)
+            .map(|v| (String::new(), v.clone()))
+            .collect();
+        Ok(Self {
+            main: adamw(vars, config.optimizer_lr)?,
+            backbone: adamw(backbone, config.optimizer_lr_backbone)?,
+            all,
+        })
+    }
+
+    /// Clips the gradient's global norm at 10 (LeRobot's default) and steps both groups.
+    fn step(&mut self, grads: &mut GradStore) -> Result<(), PolicyError> {
+        clip_gradients(grads, &self.all, 10.0)?;
+        self.main.step(grads)?;
+        self.backbone.step(grads)?;
+        Ok(())
+    }
+}
+
+/// What one optimisation step reads and does not change.
+struct Stepper<'a> {
+    policy: &'a ActPolicy,
+    data: &'a TrainData,
+    /// [`episode_starts`] of the data.
+    starts: &'a [usize],
+    /// Every frame's backbone features, when the backbone is frozen.
+    cache: Option<&'a FeatureCache>,
+    train: &'a ActTrainConfig,
+}
+
+impl Stepper<'_> {
+    /// Optimisation step `step` (0-based): frames, CVAE noise and dropout masks drawn from
+    /// the step's own stream, the L1 + KL loss, the optimisers' step. Returns the L1 and KL
+    /// terms; a non-finite loss is an error.
+    fn step(&self, opt: &mut Optimisers, step: usize) -> Result<(f32, f32), PolicyError> {
+        let (policy, config) = (self.policy, self.policy.config());
+        let mut rng = step_rng(self.train.seed, step);
+        let frames = self.starts[self.starts.len() - 1];
+        let idx: Vec<usize> = (0..self.train.batch_size)
             .map(|_| rng.random_range(0..frames))
             .collect();
-        let b = batch(&policy, data, &starts, &idx, cache.as_ref(), &mut rng)?;
+        let b = batch(policy, self.data, self.starts, &idx, self.cache, &mut rng)?;
         let drop_rng = RefCell::new(ChaCha8Rng::seed_from_u64(rng.random()));
         let dropout = Dropout::new(config.dropout, &drop_rng);
         let vae = VaeInput {
@@ -341,31 +416,9 @@ pub fn train(
                 "finite (training diverged; lower optimizer_lr)",
             ));
         }
-        let mut grads = loss.backward()?;
-        clip_gradients(&mut grads, &named, 10.0)?;
-        opt.step(&grads)?;
-        opt_backbone.step(&grads)?;
-        step += 1;
-        recent.push((l1, kld));
-        if recent.len() > 100 {
-            recent.remove(0);
-        }
-        progress(step, l1, kld);
-        if step == train.steps
-            || (train.checkpoint_every > 0 && step.is_multiple_of(train.checkpoint_every))
-        {
-            save(&policy, &varmap, out, step, train)?;
-        }
+        opt.step(&mut loss.backward()?)?;
+        Ok((l1, kld))
     }
-    let n = recent.len().max(1) as f32;
-    Ok(ActTrainReport {
-        steps_run: step - start_step,
-        step,
-        final_l1: recent.iter().map(|r| r.0).sum::<f32>() / n,
-        final_kld: recent.iter().map(|r| r.1).sum::<f32>() / n,
-        seconds: t0.elapsed().as_secs_f64(),
-        backbone_relative_error,
-    })
 }
 
 /// Replaces the backbone variables in `varmap` with the Diffusion Policy encoder at `path`,

@@ -14,7 +14,7 @@ use std::collections::HashMap;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Module, Optimizer, ParamsAdamW, VarMap};
-use rand::{Rng, SeedableRng};
+use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 use crate::config::DiffusionConfig;
@@ -22,9 +22,10 @@ use crate::error::{PolicyError, config_err};
 use crate::model::DiffusionPolicy;
 use crate::normalize::{NormMode, Normalizer};
 use crate::train::{
-    Crop, ENCODER_PREFIX, LossTrace, Progress, TrainData, crop_origin, frame_features,
-    learning_rate, push_crop, sorted_vars,
+    Crop, ENCODER_PREFIX, Progress, TrainData, crop_origin, frame_features, learning_rate,
+    push_crop, sorted_vars,
 };
+use crate::training::{LossTrace, step_rng};
 
 /// The name of the regression target in a dataset.
 pub const TARGET: &str = "observation.environment_state";
@@ -185,8 +186,7 @@ pub fn pretrain_encoder(
     let mut batch = Batch::default();
     let mut trace = LossTrace::default();
     for step in 0..pc.steps {
-        let mut rng =
-            ChaCha8Rng::seed_from_u64(pc.seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut rng = step_rng(pc.seed, step);
         inputs.draw(
             config,
             &y,

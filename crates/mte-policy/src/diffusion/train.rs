@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
-use rand::{Rng, SeedableRng};
+use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
@@ -22,6 +22,7 @@ use crate::config::{DiffusionConfig, FeatureType};
 use crate::error::{PolicyError, config_err};
 use crate::model::{DiffusionPolicy, ObsBatch, StatsMap};
 use crate::normalize::Stats;
+use crate::training::{LossTrace, checkpoint_due, clip_gradients, step_rng};
 
 /// Training settings (the model's own settings, e.g. learning rate, are in the config).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -134,8 +135,9 @@ pub struct TrainReport {
     pub steps_run: usize,
     /// Final step.
     pub step: usize,
-    /// Mean loss over the last 100 steps.
-    pub final_loss: f32,
+    /// Mean loss over the last 100 steps run by this invocation (`None` when it ran none:
+    /// the run was already at its last step).
+    pub final_loss: Option<f32>,
     /// Wall time of this invocation (s).
     pub seconds: f64,
 }
@@ -436,15 +438,7 @@ pub fn train(
     device: &Device,
     progress: Progress,
 ) -> Result<TrainReport, PolicyError> {
-    config.validate()?;
-    train.validate()?;
-    if train.freeze_encoder && config.image_shape().is_none() {
-        return Err(config_err(
-            "freeze_encoder",
-            true,
-            "an image policy (a keypoint policy has no encoder)",
-        ));
-    }
+    validate(config, train)?;
     let widen = widening(config, train)?;
     let t0 = std::time::Instant::now();
     let varmap = VarMap::new();
@@ -465,16 +459,6 @@ pub fn train(
     } else {
         None
     };
-    let mut opt = AdamW::new(
-        vars.iter().map(|(_, v)| v.clone()).collect(),
-        ParamsAdamW {
-            lr: config.optimizer_lr,
-            beta1: config.optimizer_betas[0],
-            beta2: config.optimizer_betas[1],
-            eps: config.optimizer_eps,
-            weight_decay: config.optimizer_weight_decay,
-        },
-    )?;
     let win = windows(data, config, train.successful_only);
     if win.index.is_empty() {
         return Err(config_err(
@@ -483,45 +467,22 @@ pub fn train(
             "episodes long enough for one window",
         ));
     }
-    let b = train.batch_size;
-    let steps_at_start = step;
-    let mut trace = LossTrace::default();
+    let stepper = Stepper {
+        policy: &policy,
+        data,
+        win: &win,
+        cached: cached.as_deref(),
+        vars: &vars,
+        train,
+    };
+    let mut opt = adamw(config, &vars)?;
+    let (steps_at_start, mut trace) = (step, LossTrace::default());
     while step < train.steps {
-        let mut rng = ChaCha8Rng::seed_from_u64(
-            train.seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-        );
-        let loss = batch_loss(&policy, data, &win, cached.as_deref(), b, &mut rng)?;
-        let mut grads = loss.backward()?;
-        clip_gradients(&mut grads, &vars, train.grad_clip)?;
-        let lr = learning_rate(
-            config.optimizer_lr,
-            config.scheduler_warmup_steps,
-            train.steps,
-            step,
-        );
-        opt.set_learning_rate(lr);
-        opt.step(&grads)?;
-        if let (Some(max), Some(e)) = (train.ema_max_decay, ema.as_mut()) {
-            ema_update(
-                e,
-                &vars,
-                max.min((1.0 + step as f64) / (10.0 + step as f64)),
-            )?;
-        }
-        let l = loss.to_scalar::<f32>()?;
-        if !l.is_finite() {
-            return Err(config_err(
-                "loss",
-                l,
-                "finite (training diverged; lower optimizer_lr)",
-            ));
-        }
+        let (l, lr) = stepper.step(&mut opt, ema.as_mut(), step)?;
         trace.push(l);
         step += 1;
         progress(step, l, lr);
-        if (train.checkpoint_every > 0 && step.is_multiple_of(train.checkpoint_every))
-            || step == train.steps
-        {
+        if checkpoint_due(step, train.checkpoint_every, train.steps) {
             let saved = Saved {
                 config,
                 train,
@@ -532,18 +493,94 @@ pub fn train(
             saved.write(out, step)?;
         }
     }
-    let recent = trace.recent();
-    let final_loss = if recent.is_empty() {
-        f32::NAN
-    } else {
-        recent.iter().sum::<f32>() / recent.len() as f32
-    };
     Ok(TrainReport {
         steps_run: step - steps_at_start,
         step,
-        final_loss,
+        final_loss: trace.recent_mean(),
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// Both configurations valid, and a frozen encoder only where the policy has one.
+fn validate(config: &DiffusionConfig, train: &TrainConfig) -> Result<(), PolicyError> {
+    config.validate()?;
+    train.validate()?;
+    if train.freeze_encoder && config.image_shape().is_none() {
+        return Err(config_err(
+            "freeze_encoder",
+            true,
+            "an image policy (a keypoint policy has no encoder)",
+        ));
+    }
+    Ok(())
+}
+
+/// AdamW over `vars` with the config's learning rate, betas, epsilon and weight decay (the
+/// learning rate is then set at every step by [`learning_rate`]).
+fn adamw(config: &DiffusionConfig, vars: &[(String, Var)]) -> Result<AdamW, PolicyError> {
+    let params = ParamsAdamW {
+        lr: config.optimizer_lr,
+        beta1: config.optimizer_betas[0],
+        beta2: config.optimizer_betas[1],
+        eps: config.optimizer_eps,
+        weight_decay: config.optimizer_weight_decay,
+    };
+    Ok(AdamW::new(
+        vars.iter().map(|(_, v)| v.clone()).collect(),
+        params,
+    )?)
+}
+
+/// What one optimisation step reads and does not change.
+struct Stepper<'a> {
+    policy: &'a DiffusionPolicy,
+    data: &'a TrainData,
+    win: &'a Windows,
+    /// Every frame's encoder features, when the encoder is frozen.
+    cached: Option<&'a [f32]>,
+    /// The optimised variables.
+    vars: &'a [(String, Var)],
+    train: &'a TrainConfig,
+}
+
+impl Stepper<'_> {
+    /// Optimisation step `step` (0-based): a batch drawn from the step's own stream, the
+    /// clipped gradient, AdamW at the scheduled learning rate, the EMA update. Returns the
+    /// batch loss and the learning rate; a non-finite loss is an error.
+    fn step(
+        &self,
+        opt: &mut AdamW,
+        ema: Option<&mut HashMap<String, Tensor>>,
+        step: usize,
+    ) -> Result<(f32, f64), PolicyError> {
+        let (config, train) = (self.policy.config(), self.train);
+        let mut rng = step_rng(train.seed, step);
+        let b = train.batch_size;
+        let loss = batch_loss(self.policy, self.data, self.win, self.cached, b, &mut rng)?;
+        let mut grads = loss.backward()?;
+        clip_gradients(&mut grads, self.vars, train.grad_clip)?;
+        let lr = learning_rate(
+            config.optimizer_lr,
+            config.scheduler_warmup_steps,
+            train.steps,
+            step,
+        );
+        opt.set_learning_rate(lr);
+        opt.step(&grads)?;
+        if let (Some(max), Some(e)) = (train.ema_max_decay, ema) {
+            let decay = max.min((1.0 + step as f64) / (10.0 + step as f64));
+            ema_update(e, self.vars, decay)?;
+        }
+        let l = loss.to_scalar::<f32>()?;
+        if !l.is_finite() {
+            return Err(config_err(
+                "loss",
+                l,
+                "finite (training diverged; lower optimizer_lr)",
+            ));
+        }
+        Ok((l, lr))
+    }
 }
 
 /// The denoising loss of one training batch of `b` windows drawn with `rng` (noise and
@@ -638,61 +675,6 @@ fn start_or_resume(
         None => None,
     };
     Ok((step, ema))
-}
-
-/// The losses of a run: the first 50 and the last 100 steps.
-#[derive(Debug, Default)]
-pub(crate) struct LossTrace {
-    first: Vec<f32>,
-    recent: std::collections::VecDeque<f32>,
-}
-
-impl LossTrace {
-    /// Records one step's loss.
-    pub(crate) fn push(&mut self, l: f32) {
-        if self.first.len() < 50 {
-            self.first.push(l);
-        }
-        self.recent.push_back(l);
-        if self.recent.len() > 100 {
-            self.recent.pop_front();
-        }
-    }
-
-    /// The first (up to) 50 losses.
-    pub(crate) fn first(&self) -> &[f32] {
-        &self.first
-    }
-
-    /// The last (up to) 100 losses.
-    pub(crate) fn recent(&mut self) -> &[f32] {
-        self.recent.make_contiguous()
-    }
-}
-
-/// Global gradient-norm clipping to `max`.
-pub(crate) fn clip_gradients(
-    grads: &mut candle_core::backprop::GradStore,
-    vars: &[(String, Var)],
-    max: f64,
-) -> Result<(), PolicyError> {
-    let mut sq = 0f64;
-    for (_, v) in vars {
-        if let Some(g) = grads.get(v.as_tensor()) {
-            sq += f64::from(g.sqr()?.sum_all()?.to_scalar::<f32>()?);
-        }
-    }
-    let norm = sq.sqrt();
-    if norm > max {
-        let scale = max / (norm + 1e-6);
-        for (_, v) in vars {
-            if let Some(g) = grads.get(v.as_tensor()) {
-                let g = (g * scale)?.detach();
-                grads.insert(v.as_tensor(), g);
-            }
-        }
-    }
-    Ok(())
 }
 
 /// `ema <- decay ema + (1 - decay) weights` for the optimised variables.

@@ -1,0 +1,152 @@
+//! The model-independent pieces of a training loop, shared by Diffusion Policy (and its
+//! encoder pre-training) and ACT: the per-step random stream, the checkpoint schedule,
+//! global gradient-norm clipping and the loss trace a run reports from.
+
+use std::collections::VecDeque;
+
+use candle_core::Var;
+use candle_core::backprop::GradStore;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use crate::error::PolicyError;
+
+/// The random stream of optimisation step `step` of a run seeded with `seed`: keyed by the
+/// step, so a resumed run draws exactly what an uninterrupted one would have.
+pub(crate) fn step_rng(seed: u64, step: usize) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+}
+
+/// Whether a run of `total` steps writes a checkpoint after step `step` (1-based: the number
+/// of steps done): every `every` steps (0: never), and always after the last.
+pub(crate) fn checkpoint_due(step: usize, every: usize, total: usize) -> bool {
+    step == total || (every > 0 && step.is_multiple_of(every))
+}
+
+/// Global gradient-norm clipping to `max`.
+pub(crate) fn clip_gradients(
+    grads: &mut GradStore,
+    vars: &[(String, Var)],
+    max: f64,
+) -> Result<(), PolicyError> {
+    let mut sq = 0f64;
+    for (_, v) in vars {
+        if let Some(g) = grads.get(v.as_tensor()) {
+            sq += f64::from(g.sqr()?.sum_all()?.to_scalar::<f32>()?);
+        }
+    }
+    let norm = sq.sqrt();
+    if norm > max {
+        let scale = max / (norm + 1e-6);
+        for (_, v) in vars {
+            if let Some(g) = grads.get(v.as_tensor()) {
+                let g = (g * scale)?.detach();
+                grads.insert(v.as_tensor(), g);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The losses of a run: the first 50 and the last 100 steps.
+#[derive(Debug, Default)]
+pub(crate) struct LossTrace {
+    first: Vec<f32>,
+    recent: VecDeque<f32>,
+}
+
+impl LossTrace {
+    /// Records one step's loss.
+    pub(crate) fn push(&mut self, l: f32) {
+        if self.first.len() < 50 {
+            self.first.push(l);
+        }
+        self.recent.push_back(l);
+        if self.recent.len() > 100 {
+            self.recent.pop_front();
+        }
+    }
+
+    /// The first (up to) 50 losses.
+    pub(crate) fn first(&self) -> &[f32] {
+        &self.first
+    }
+
+    /// The last (up to) 100 losses.
+    pub(crate) fn recent(&mut self) -> &[f32] {
+        self.recent.make_contiguous()
+    }
+
+    /// The mean of the last (up to) 100 losses; `None` when no step was recorded (a run
+    /// resumed at its last step).
+    pub(crate) fn recent_mean(&self) -> Option<f32> {
+        let n = self.recent.len();
+        (n > 0).then(|| self.recent.iter().sum::<f32>() / n as f32)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::Rng;
+
+    #[test]
+    fn step_streams_are_keyed_by_seed_and_step() {
+        let draw = |seed, step| step_rng(seed, step).random::<u64>();
+        assert_eq!(draw(7, 3), draw(7, 3));
+        assert_ne!(draw(7, 3), draw(7, 4));
+        assert_ne!(draw(7, 3), draw(8, 3));
+    }
+
+    #[test]
+    fn checkpoints_fall_on_the_period_and_the_last_step() {
+        let due: Vec<usize> = (1..=10).filter(|&s| checkpoint_due(s, 4, 10)).collect();
+        assert_eq!(due, vec![4, 8, 10]);
+        let last_only: Vec<usize> = (1..=5).filter(|&s| checkpoint_due(s, 0, 5)).collect();
+        assert_eq!(last_only, vec![5]);
+    }
+
+    #[test]
+    fn the_trace_keeps_the_first_50_and_the_last_100() {
+        let mut t = LossTrace::default();
+        assert_eq!(t.recent_mean(), None);
+        for i in 0..300 {
+            t.push(i as f32);
+        }
+        assert_eq!(t.first(), (0..50).map(|i| i as f32).collect::<Vec<_>>());
+        assert_eq!(t.recent(), (200..300).map(|i| i as f32).collect::<Vec<_>>());
+        assert_eq!(t.recent_mean(), Some(249.5));
+    }
+
+    #[test]
+    fn clipping_scales_the_global_norm_down_to_the_bound() -> Result<(), PolicyError> {
+        let dev = candle_core::Device::Cpu;
+        let a = Var::from_vec(vec![1f32, 2.0], 2, &dev)?;
+        let b = Var::from_vec(vec![3f32], 1, &dev)?;
+        // Loss 3a0 + 4b0 gives gradient (3, 0) and (4): global norm 5.
+        let loss = ((a.as_tensor().narrow(0, 0, 1)? * 3.0)? + (b.as_tensor() * 4.0)?)?;
+        let vars = vec![("a".to_string(), a.clone()), ("b".to_string(), b.clone())];
+        let norm = |g: &GradStore| -> Result<f64, PolicyError> {
+            let mut sq = 0.0;
+            for (_, v) in &vars {
+                let g = g.get(v.as_tensor()).expect("a gradient");
+                sq += f64::from(g.sqr()?.sum_all()?.to_scalar::<f32>()?);
+            }
+            Ok(sq.sqrt())
+        };
+        let mut grads = loss.sum_all()?.backward()?;
+        clip_gradients(&mut grads, &vars, 10.0)?;
+        assert!(
+            (norm(&grads)? - 5.0).abs() < 1e-5,
+            "below the bound: unchanged"
+        );
+        clip_gradients(&mut grads, &vars, 1.0)?;
+        assert!((norm(&grads)? - 1.0).abs() < 1e-5, "clipped to the bound");
+        let ga = grads
+            .get(a.as_tensor())
+            .expect("a gradient")
+            .to_vec1::<f32>()?;
+        assert!((ga[0] - 0.6).abs() < 1e-5 && ga[1] == 0.0, "{ga:?}");
+        Ok(())
+    }
+}

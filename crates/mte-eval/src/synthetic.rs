@@ -247,99 +247,19 @@ pub fn run(
     reporter: &dyn Reporter,
 ) -> Result<SyntheticReport, SyntheticError> {
     cfg.validate()?;
-    let g = cfg.geometry;
-    let (d, t_p) = (cfg.dim, g.t_p);
-    let m_min = g.m_min();
-    let noise = Normal::new(0.0, cfg.noise_std).map_err(|_| SyntheticError::Invalid {
-        field: "noise_std",
-        value: cfg.noise_std.to_string(),
-        expected: "a finite value >= 0".into(),
-    })?;
-    let opts = EnsemblerOptions {
-        bracket_diagnostics: true,
-        ..Default::default()
-    };
-    let mut ensemblers = cfg
-        .aggregators
-        .iter()
-        .map(|&a| TemporalEnsembler::with_options(g, d, a, opts))
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|source| SyntheticError::Ensemble { episode: 0, source })?;
-    let n_aggs = cfg.aggregators.len();
-    let mut cells = Vec::with_capacity(cfg.q_values.len() * n_aggs);
-    let mut m_hist = std::collections::BTreeMap::<usize, u64>::new();
+    let mut runner = Runner::new(cfg)?;
+    let mut cells = Vec::with_capacity(cfg.q_values.len() * cfg.aggregators.len());
     reporter.start(
         "synthetic episodes",
         (cfg.q_values.len() * cfg.episodes) as u64,
     );
-    let mut scratch = Scratch {
-        row: vec![0.0f64; d],
-        chunk: vec![0.0f32; t_p * d],
-    };
     for &q in &cfg.q_values {
-        let mut errors: Vec<Vec<f64>> = vec![Vec::new(); n_aggs];
-        let mut episode_rmse: Vec<Vec<f64>> = vec![Vec::new(); n_aggs];
-        let mut brackets = vec![BracketAccumulator::default(); n_aggs];
+        let mut tallies = Tallies::new(cfg.aggregators.len());
         for episode in 0..cfg.episodes {
-            // The same episode seed for every q: the reference and noise pair across q too.
-            let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
-            rng.set_stream(episode as u64);
-            let draws = EpisodeDraws::draw(&mut rng, d, m_min);
-            for e in &mut ensemblers {
-                e.reset();
-            }
-            let mut sq = vec![0.0f64; n_aggs];
-            for tau in 0..cfg.steps {
-                if tau % g.h as u64 == 0 {
-                    let i = tau / g.h as u64;
-                    let corrupted = ((i as usize + draws.phase) % m_min) < q;
-                    draws.chunk(cfg, tau, corrupted, &noise, &mut rng, &mut scratch);
-                    for e in &mut ensemblers {
-                        e.insert(tau, &scratch.chunk, QueryMeta { corrupted })
-                            .map_err(|source| SyntheticError::Ensemble { episode, source })?;
-                    }
-                }
-                draws.reference.at(tau as f64, &mut scratch.row);
-                for (a, e) in ensemblers.iter_mut().enumerate() {
-                    let step = e
-                        .action(tau)
-                        .map_err(|source| SyntheticError::Ensemble { episode, source })?;
-                    if a == 0 {
-                        *m_hist.entry(step.report.m).or_default() += 1;
-                    }
-                    let err = step
-                        .action
-                        .iter()
-                        .zip(&scratch.row)
-                        .map(|(&x, r)| (x as f64 - r).powi(2))
-                        .sum::<f64>()
-                        .sqrt();
-                    errors[a].push(err);
-                    sq[a] += err * err;
-                    if let Some(b) = step.bracket {
-                        brackets[a].record(&step.report, &b);
-                    }
-                }
-            }
-            for a in 0..n_aggs {
-                episode_rmse[a].push((sq[a] / cfg.steps as f64).sqrt());
-            }
+            runner.episode(q, episode, &mut tallies)?;
             reporter.advance(1);
         }
-        for (a, &aggregator) in cfg.aggregators.iter().enumerate() {
-            let e = &mut errors[a];
-            let rmse = (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt();
-            e.sort_by(f64::total_cmp);
-            cells.push(SyntheticCell {
-                q,
-                aggregator,
-                rmse,
-                p99_error: nearest_rank(e, 0.99).unwrap_or(0.0),
-                max_error: e.last().copied().unwrap_or(0.0),
-                episode_rmse: std::mem::take(&mut episode_rmse[a]),
-                bracket: brackets[a].rows(),
-            });
-        }
+        cells.extend(tallies.cells(q, &cfg.aggregators));
     }
     reporter.finish();
     let comparisons = compare(&cells, &cfg.aggregators);
@@ -347,8 +267,149 @@ pub fn run(
         config: cfg.clone(),
         cells,
         comparisons,
-        m_histogram: m_hist.into_iter().collect(),
+        m_histogram: runner.m_hist.into_iter().collect(),
     })
+}
+
+/// The state the episodes share: one ensembler per aggregator, the clean noise, scratch
+/// buffers and the histogram of `M` (over every step of every episode, read off the first
+/// aggregator: `M` does not depend on the aggregator).
+struct Runner<'a> {
+    cfg: &'a SyntheticConfig,
+    noise: Normal<f64>,
+    ensemblers: Vec<TemporalEnsembler>,
+    scratch: Scratch,
+    m_hist: std::collections::BTreeMap<usize, u64>,
+}
+
+impl<'a> Runner<'a> {
+    fn new(cfg: &'a SyntheticConfig) -> Result<Self, SyntheticError> {
+        let noise = Normal::new(0.0, cfg.noise_std).map_err(|_| SyntheticError::Invalid {
+            field: "noise_std",
+            value: cfg.noise_std.to_string(),
+            expected: "a finite value >= 0".into(),
+        })?;
+        let opts = EnsemblerOptions {
+            bracket_diagnostics: true,
+            ..Default::default()
+        };
+        let ensemblers = cfg
+            .aggregators
+            .iter()
+            .map(|&a| TemporalEnsembler::with_options(cfg.geometry, cfg.dim, a, opts))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|source| SyntheticError::Ensemble { episode: 0, source })?;
+        let scratch = Scratch {
+            row: vec![0.0f64; cfg.dim],
+            chunk: vec![0.0f32; cfg.geometry.t_p * cfg.dim],
+        };
+        Ok(Self {
+            cfg,
+            noise,
+            ensemblers,
+            scratch,
+            m_hist: Default::default(),
+        })
+    }
+
+    /// Episode `episode` at burst length `q`, every aggregator on the same streams, into
+    /// `tallies`.
+    fn episode(
+        &mut self,
+        q: usize,
+        episode: usize,
+        tallies: &mut Tallies,
+    ) -> Result<(), SyntheticError> {
+        let (cfg, g) = (self.cfg, self.cfg.geometry);
+        let m_min = g.m_min();
+        // The same episode seed for every q: the reference and noise pair across q too.
+        let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+        rng.set_stream(episode as u64);
+        let draws = EpisodeDraws::draw(&mut rng, cfg.dim, m_min);
+        for e in &mut self.ensemblers {
+            e.reset();
+        }
+        let ens_err = |source| SyntheticError::Ensemble { episode, source };
+        let mut sq = vec![0.0f64; self.ensemblers.len()];
+        for tau in 0..cfg.steps {
+            if tau % g.h as u64 == 0 {
+                let i = tau / g.h as u64;
+                let corrupted = ((i as usize + draws.phase) % m_min) < q;
+                let scratch = &mut self.scratch;
+                draws.chunk(cfg, tau, corrupted, &self.noise, &mut rng, scratch);
+                for e in &mut self.ensemblers {
+                    e.insert(tau, &scratch.chunk, QueryMeta { corrupted })
+                        .map_err(ens_err)?;
+                }
+            }
+            draws.reference.at(tau as f64, &mut self.scratch.row);
+            for (a, e) in self.ensemblers.iter_mut().enumerate() {
+                let step = e.action(tau).map_err(ens_err)?;
+                if a == 0 {
+                    *self.m_hist.entry(step.report.m).or_default() += 1;
+                }
+                let err = step
+                    .action
+                    .iter()
+                    .zip(&self.scratch.row)
+                    .map(|(&x, r)| (x as f64 - r).powi(2))
+                    .sum::<f64>()
+                    .sqrt();
+                tallies.errors[a].push(err);
+                sq[a] += err * err;
+                if let Some(b) = step.bracket {
+                    tallies.brackets[a].record(&step.report, &b);
+                }
+            }
+        }
+        for (rmse, sq) in tallies.episode_rmse.iter_mut().zip(sq) {
+            rmse.push((sq / cfg.steps as f64).sqrt());
+        }
+        Ok(())
+    }
+}
+
+/// One burst length's tallies, aggregator by aggregator (in the config's order).
+struct Tallies {
+    /// Tracking error of every step of every episode.
+    errors: Vec<Vec<f64>>,
+    /// Each episode's RMSE.
+    episode_rmse: Vec<Vec<f64>>,
+    brackets: Vec<BracketAccumulator>,
+}
+
+impl Tallies {
+    fn new(aggregators: usize) -> Self {
+        Self {
+            errors: vec![Vec::new(); aggregators],
+            episode_rmse: vec![Vec::new(); aggregators],
+            brackets: vec![BracketAccumulator::default(); aggregators],
+        }
+    }
+
+    /// The cells of burst length `q`, one per aggregator.
+    fn cells(self, q: usize, aggregators: &[Aggregator]) -> Vec<SyntheticCell> {
+        let rows = self
+            .errors
+            .into_iter()
+            .zip(self.episode_rmse)
+            .zip(self.brackets);
+        rows.zip(aggregators)
+            .map(|(((mut e, episode_rmse), brackets), &aggregator)| {
+                let rmse = (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt();
+                e.sort_by(f64::total_cmp);
+                SyntheticCell {
+                    q,
+                    aggregator,
+                    rmse,
+                    p99_error: nearest_rank(&e, 0.99).unwrap_or(0.0),
+                    max_error: e.last().copied().unwrap_or(0.0),
+                    episode_rmse,
+                    bracket: brackets.rows(),
+                }
+            })
+            .collect()
+    }
 }
 
 /// One synthetic episode's draws, made once per episode in this order: the reference

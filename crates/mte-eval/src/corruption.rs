@@ -703,16 +703,7 @@ impl ObservationCorruptor {
             return win;
         }
         match self.fault {
-            SensorFault::Blank => {
-                for o in &mut win {
-                    for img in o.image.iter_mut().chain(o.wrist_image.iter_mut()) {
-                        img.fill(0);
-                    }
-                    if let Some(kp) = o.env_state.as_mut() {
-                        kp.fill(0.0);
-                    }
-                }
-            }
+            SensorFault::Blank => win.iter_mut().for_each(blank),
             SensorFault::Stale => {
                 let prev = &frames[n.saturating_sub(2)];
                 copy_extero(prev, &mut win[t_o - 1]);
@@ -752,45 +743,62 @@ impl ObservationCorruptor {
                             blur_image(img, w, h, length, angle);
                         }
                     }
-                    if o.env_state.is_some() {
-                        // Mean of the last `length` frames ending at this one.
-                        let end = n - t_o + k + 1;
-                        let begin = end.saturating_sub(length);
-                        let src = &frames[begin..end];
-                        if let Some(kp) = o.env_state.as_mut() {
-                            for (j, v) in kp.iter_mut().enumerate() {
-                                let s: f64 = src
-                                    .iter()
-                                    .map(|f| f64::from(f.env_state.as_ref().map_or(0.0, |e| e[j])))
-                                    .sum();
-                                *v = (s / src.len() as f64) as f32;
-                            }
-                        }
+                    // The keypoints: the mean of the last `length` frames ending at this one.
+                    let end = n - t_o + k + 1;
+                    if let Some(kp) = o.env_state.as_mut() {
+                        mean_keypoints(&frames[end.saturating_sub(length)..end], kp);
                     }
                 }
             }
             SensorFault::GaussianNoise { sigma } => {
-                let img_noise = Normal::new(0.0, sigma * 255.0).ok();
-                let kp_noise = Normal::new(0.0, sigma).ok();
                 for o in &mut win {
-                    if let Some(nd) = img_noise {
-                        // The scene camera's pixels first, then the wrist camera's.
-                        for img in o.image.iter_mut().chain(o.wrist_image.iter_mut()) {
-                            for p in img.iter_mut() {
-                                let v = f64::from(*p) + nd.sample(rng);
-                                *p = v.round().clamp(0.0, 255.0) as u8;
-                            }
-                        }
-                    }
-                    if let (Some(kp), Some(nd)) = (o.env_state.as_mut(), kp_noise) {
-                        for v in kp.iter_mut() {
-                            *v = (f64::from(*v) + nd.sample(rng)) as f32;
-                        }
-                    }
+                    add_noise(o, sigma, rng);
                 }
             }
         }
         win
+    }
+}
+
+/// A blank frame: every camera black, every keypoint zero (proprioception untouched).
+fn blank(o: &mut Observation) {
+    for img in o.image.iter_mut().chain(o.wrist_image.iter_mut()) {
+        img.fill(0);
+    }
+    if let Some(kp) = o.env_state.as_mut() {
+        kp.fill(0.0);
+    }
+}
+
+/// `kp` set to the coordinate-wise mean of the keypoints of `src` (a frame without keypoints
+/// counts as zeros).
+fn mean_keypoints(src: &[Observation], kp: &mut [f32]) {
+    for (j, v) in kp.iter_mut().enumerate() {
+        let s: f64 = src
+            .iter()
+            .map(|f| f64::from(f.env_state.as_ref().map_or(0.0, |e| e[j])))
+            .sum();
+        *v = (s / src.len() as f64) as f32;
+    }
+}
+
+/// Zero-mean Gaussian noise on the exteroceptive channels: `sigma` of the full range on
+/// pixels (`sigma * 255` grey levels, rounded and clamped to `0..=255`), `sigma` in the
+/// keypoints' own units. The scene camera's pixels draw first, then the wrist camera's, then
+/// the keypoints.
+fn add_noise(o: &mut Observation, sigma: f64, rng: &mut dyn RngCore) {
+    if let Ok(nd) = Normal::new(0.0, sigma * 255.0) {
+        for img in o.image.iter_mut().chain(o.wrist_image.iter_mut()) {
+            for p in img.iter_mut() {
+                let v = f64::from(*p) + nd.sample(rng);
+                *p = v.round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+    if let (Some(kp), Ok(nd)) = (o.env_state.as_mut(), Normal::new(0.0, sigma)) {
+        for v in kp.iter_mut() {
+            *v = (f64::from(*v) + nd.sample(rng)) as f32;
+        }
     }
 }
 

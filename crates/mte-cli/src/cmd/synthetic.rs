@@ -51,11 +51,21 @@ fn fmt_p(p: Option<f64>) -> String {
     }
 }
 
-/// The report as markdown-style tables.
+/// The report as markdown-style tables: the settings, tracking error per q and aggregator,
+/// the paired comparisons, the bracket table at the largest q (the baseline and the first
+/// alternative; every aggregator when `verbose`) and the distribution of `M`.
 pub fn render(r: &SyntheticReport, verbose: bool) -> String {
-    let c = &r.config;
-    let g = c.geometry;
     let mut s = String::new();
+    header(&mut s, &r.config);
+    rmse_table(&mut s, r);
+    comparisons(&mut s, r);
+    bracket_table(&mut s, r, verbose);
+    m_distribution(&mut s, r);
+    s
+}
+
+fn header(s: &mut String, c: &SyntheticConfig) {
+    let g = c.geometry;
     let _ = writeln!(
         s,
         "mte synthetic: synthetic stress test (no simulator)\n\
@@ -73,6 +83,10 @@ pub fn render(r: &SyntheticReport, verbose: bool) -> String {
         c.corruption,
         c.seed
     );
+}
+
+fn rmse_table(s: &mut String, r: &SyntheticReport) {
+    let c = &r.config;
     let _ = writeln!(
         s,
         "Tracking error, RMSE over all steps (action units; lower is better)\n"
@@ -95,11 +109,14 @@ pub fn render(r: &SyntheticReport, verbose: bool) -> String {
         }
         s.push('\n');
     }
+}
+
+fn comparisons(s: &mut String, r: &SyntheticReport) {
     let _ = writeln!(
         s,
         "\nPaired over episodes against {}: mean RMSE difference (negative = better), \
          Wilcoxon signed-rank p, Holm-adjusted p\n",
-        c.aggregators[0]
+        r.config.aggregators[0]
     );
     let _ = writeln!(
         s,
@@ -117,6 +134,9 @@ pub fn render(r: &SyntheticReport, verbose: bool) -> String {
             fmt_p(cmp.holm_p)
         );
     }
+}
+
+fn bracket_table(s: &mut String, r: &SyntheticReport, verbose: bool) {
     let _ = writeln!(
         s,
         "\nBracket table: steps with at least one corrupted candidate, by regime; \"outside\" = \
@@ -127,10 +147,9 @@ pub fn render(r: &SyntheticReport, verbose: bool) -> String {
         "| aggregator | regime | steps | outside % | median excess | max excess |\n\
          |---|---|---|---|---|---|"
     );
-    for (i, a) in c.aggregators.iter().enumerate() {
-        if !verbose && i > 1 {
-            break; // baseline and first alternative; -v for all
-        }
+    // The baseline and the first alternative; -v for all.
+    let shown = if verbose { usize::MAX } else { 2 };
+    for a in r.config.aggregators.iter().take(shown) {
         for cell in r
             .cells
             .iter()
@@ -150,13 +169,15 @@ pub fn render(r: &SyntheticReport, verbose: bool) -> String {
             }
         }
     }
+}
+
+fn m_distribution(s: &mut String, r: &SyntheticReport) {
     let total: u64 = r.m_histogram.iter().map(|(_, n)| n).sum();
     let _ = write!(s, "\nDistribution of M(tau):");
     for (m, n) in &r.m_histogram {
         let _ = write!(s, " M={m}: {:.1}%", 100.0 * *n as f64 / total as f64);
     }
     s.push('\n');
-    s
 }
 
 fn max_q(r: &SyntheticReport) -> usize {

@@ -241,7 +241,8 @@ fn placement(
 
 /// `mte defend finetune`
 pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
-    use mte_policy::patch::{Anchor, FinetuneConfig, finetune_encoder, rgb_to_texture};
+    use mte_policy::patch::{finetune_encoder, rgb_to_texture};
+    let cfg = finetune_config(a)?;
     let dev = candle_core::Device::Cpu;
     let (policy, varmap) = mte_policy::checkpoint::load_trainable(&a.policy, &dev)
         .with_context(|| format!("loading {}", a.policy.display()))?;
@@ -249,24 +250,6 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
     let (meta, patch) = mte_eval::patch_file::load(&a.patch)?;
     let texture = rgb_to_texture(patch.rgb(), meta.side);
     let data = crate::cmd::train::load_train_data(&a.data, policy.config())?;
-    let cfg = FinetuneConfig {
-        steps: a.steps,
-        lr: a.lr,
-        consistency: a.consistency,
-        anchor: match a.anchor {
-            crate::args::AnchorArg::Original => Anchor::Original,
-            crate::args::AnchorArg::Current => Anchor::Current,
-        },
-        clean_features: a.clean_features,
-        clean_task: a.clean_task,
-        batch_size: a.batch_size,
-        regenerate: a.regenerate,
-        regenerate_step: a.regenerate_step,
-        seed: a.seed,
-    };
-    if a.checkpoint_every == Some(0) {
-        anyhow::bail!("--checkpoint-every 0: expected a step count >= 1");
-    }
     let t0 = std::time::Instant::now();
     let bar = Bar::for_cli(cli, "fine-tune", cfg.steps);
     // The current values of every variable, by name, as a checkpoint.
@@ -297,21 +280,7 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
     )?;
     bar.finish();
     save(&a.out)?;
-    // The regeneration's losses are present exactly when the patch was regenerated.
-    if let (Some(first_loss), Some(last_loss)) = (report.first_patch_loss, report.last_patch_loss) {
-        let r = mte_eval::patch_file::Regeneration {
-            from: a.patch.display().to_string(),
-            encoder: a.out.display().to_string(),
-            steps: report.steps,
-            step: cfg.regenerate_step,
-            batch_size: cfg.batch_size,
-            seed: cfg.seed,
-            first_loss,
-            last_loss,
-        };
-        let rgb = mte_policy::patch::texture_to_rgb(&report.texture, meta.side);
-        mte_eval::patch_file::save(&a.out.join("patch"), &meta.regenerated(r), &rgb)?;
-    }
+    save_regenerated_patch(a, &cfg, meta, &report)?;
     let secs = t0.elapsed().as_secs_f64();
     let summary = serde_json::json!({
         "policy": a.policy, "patch": a.patch, "config": cfg, "report": {
@@ -344,6 +313,57 @@ pub fn finetune(cli: &Cli, a: &crate::args::FinetuneArgs) -> Result<()> {
             a.out.display()
         )?,
     }
+    Ok(())
+}
+
+/// The fine-tuning settings of `mte defend finetune`'s arguments; `--checkpoint-every 0` is
+/// refused here, before any work.
+fn finetune_config(a: &crate::args::FinetuneArgs) -> Result<mte_policy::patch::FinetuneConfig> {
+    use mte_policy::patch::{Anchor, FinetuneConfig};
+    if a.checkpoint_every == Some(0) {
+        anyhow::bail!("--checkpoint-every 0: expected a step count >= 1");
+    }
+    Ok(FinetuneConfig {
+        steps: a.steps,
+        lr: a.lr,
+        consistency: a.consistency,
+        anchor: match a.anchor {
+            crate::args::AnchorArg::Original => Anchor::Original,
+            crate::args::AnchorArg::Current => Anchor::Current,
+        },
+        clean_features: a.clean_features,
+        clean_task: a.clean_task,
+        batch_size: a.batch_size,
+        regenerate: a.regenerate,
+        regenerate_step: a.regenerate_step,
+        seed: a.seed,
+    })
+}
+
+/// With `--regenerate`, the patch as the fine-tuning left it, into `out/patch` with its
+/// provenance (the regeneration's losses are present exactly when the patch was regenerated).
+fn save_regenerated_patch(
+    a: &crate::args::FinetuneArgs,
+    cfg: &mte_policy::patch::FinetuneConfig,
+    meta: mte_eval::patch_file::PatchMeta,
+    report: &mte_policy::patch::FinetuneReport,
+) -> Result<()> {
+    let (Some(first_loss), Some(last_loss)) = (report.first_patch_loss, report.last_patch_loss)
+    else {
+        return Ok(());
+    };
+    let r = mte_eval::patch_file::Regeneration {
+        from: a.patch.display().to_string(),
+        encoder: a.out.display().to_string(),
+        steps: report.steps,
+        step: cfg.regenerate_step,
+        batch_size: cfg.batch_size,
+        seed: cfg.seed,
+        first_loss,
+        last_loss,
+    };
+    let rgb = mte_policy::patch::texture_to_rgb(&report.texture, meta.side);
+    mte_eval::patch_file::save(&a.out.join("patch"), &meta.regenerated(r), &rgb)?;
     Ok(())
 }
 

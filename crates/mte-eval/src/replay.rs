@@ -251,25 +251,8 @@ pub fn replay_each<E>(
     aggregator: Aggregator,
     mut sink: impl FnMut(ReplayStep) -> Result<(), E>,
 ) -> Result<(), SinkOr<E>> {
-    // The stride only bounds how far ahead chunks may be inserted; the replay inserts each
-    // chunk at its own time, so h = 1 is exact for any stride.
-    let geometry =
-        ChunkGeometry::new(stream.t_p, t_o, 1).map_err(|source| ReplayError::Geometry {
-            t_o,
-            t_p: stream.t_p,
-            source,
-        })?;
-    let mut ens = TemporalEnsembler::with_options(
-        geometry,
-        stream.dim,
-        aggregator,
-        EnsemblerOptions::default(),
-    )
-    .map_err(|source| ReplayError::Insert {
-        line: stream.records[0].0,
-        source,
-    })?;
-    let span = geometry.span() as u64;
+    let mut ens = ensembler(stream, t_o, aggregator)?;
+    let span = ens.geometry().span() as u64;
     let first = stream.records[0].1.t;
     // read_stream bounds t by MAX_QUERY_TIME, so this cannot overflow.
     let last = stream.records[stream.records.len() - 1].1.t + span - 1;
@@ -280,14 +263,10 @@ pub fn replay_each<E>(
         while let Some((line, rec)) = stream.records.get(next).filter(|(_, r)| r.t == tau) {
             flat.clear();
             flat.extend(rec.chunk.iter().flatten());
-            ens.insert(
-                rec.t,
-                &flat,
-                QueryMeta {
-                    corrupted: rec.corrupted,
-                },
-            )
-            .map_err(|source| {
+            let meta = QueryMeta {
+                corrupted: rec.corrupted,
+            };
+            ens.insert(rec.t, &flat, meta).map_err(|source| {
                 SinkOr::Replay(ReplayError::Insert {
                     line: *line,
                     source,
@@ -295,42 +274,74 @@ pub fn replay_each<E>(
             })?;
             next += 1;
         }
-        let step = match ens.action(tau) {
-            Ok(step) => ReplayStep {
-                tau,
-                through: None,
-                action: Some(step.action.to_vec()),
-                report: Some(step.report),
-                error: None,
-            },
+        match ens.action(tau) {
+            Ok(step) => sink(ReplayStep::action(tau, step.action, step.report)),
             Err(e @ EnsembleError::NoCandidates { .. }) => {
                 // Nothing covers tau, so nothing covers any time before the next query.
                 let until = stream.records.get(next).map_or(last, |(_, r)| r.t - 1);
-                let step = ReplayStep {
-                    tau,
-                    through: (until > tau).then_some(until),
-                    action: None,
-                    report: None,
-                    error: Some(e.to_string()),
-                };
-                sink(step).map_err(SinkOr::Sink)?;
+                sink(ReplayStep::failed(tau, (until > tau).then_some(until), &e))
+                    .map_err(SinkOr::Sink)?;
                 // Every live chunk ended before tau: start afresh at the next query.
                 ens.reset();
                 tau = until + 1;
                 continue;
             }
-            Err(e) => ReplayStep {
-                tau,
-                through: None,
-                action: None,
-                report: None,
-                error: Some(e.to_string()),
-            },
-        };
-        sink(step).map_err(SinkOr::Sink)?;
+            Err(e) => sink(ReplayStep::failed(tau, None, &e)),
+        }
+        .map_err(SinkOr::Sink)?;
         tau += 1;
     }
     Ok(())
+}
+
+/// The ensembler a replay of `stream` runs: the stream's chunk length and action size,
+/// `t_o`, stride 1. The stride only bounds how far ahead chunks may be inserted; the replay
+/// inserts each chunk at its own time, so h = 1 is exact for any stride.
+fn ensembler(
+    stream: &ChunkStream,
+    t_o: usize,
+    aggregator: Aggregator,
+) -> Result<TemporalEnsembler, ReplayError> {
+    let geometry =
+        ChunkGeometry::new(stream.t_p, t_o, 1).map_err(|source| ReplayError::Geometry {
+            t_o,
+            t_p: stream.t_p,
+            source,
+        })?;
+    TemporalEnsembler::with_options(
+        geometry,
+        stream.dim,
+        aggregator,
+        EnsemblerOptions::default(),
+    )
+    .map_err(|source| ReplayError::Insert {
+        line: stream.records[0].0,
+        source,
+    })
+}
+
+impl ReplayStep {
+    /// The action computed at `tau`.
+    fn action(tau: u64, action: &[f32], report: StepReport) -> Self {
+        Self {
+            tau,
+            through: None,
+            action: Some(action.to_vec()),
+            report: Some(report),
+            error: None,
+        }
+    }
+
+    /// No action at `tau` (through `through`, for an uncovered run), for reason `e`.
+    fn failed(tau: u64, through: Option<u64>, e: &EnsembleError) -> Self {
+        Self {
+            tau,
+            through,
+            action: None,
+            report: None,
+            error: Some(e.to_string()),
+        }
+    }
 }
 
 #[cfg(test)]

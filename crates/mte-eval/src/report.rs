@@ -999,38 +999,7 @@ fn main_rows(
             Some(cj) => clean_test(&cells[cj], cj, (baseline, robust), &mut clean_tests, notes)?,
             None => None,
         };
-        let ran = c.eps.iter().any(|v| !v.is_empty());
-        if !ran {
-            notes.push(format!(
-                "cell `{}` {NOT_RUN} (a resumed sweep fills it)",
-                c.spec.id
-            ));
-        }
-        let comparison = if !ran {
-            None
-        } else if c.has(baseline) && c.has(robust) {
-            let what = format!("cell `{}`, `{robust}` vs `{baseline}`", c.spec.id);
-            Some(compare(
-                c.episodes(baseline),
-                c.episodes(robust),
-                robust,
-                &what,
-                c.mcnemar,
-            )?)
-        } else {
-            notes.push(format!(
-                "cell `{}` lacks arm `{}`: no comparison",
-                c.spec.id,
-                if c.has(baseline) { robust } else { baseline }
-            ));
-            None
-        };
-        if let Some(cmp) = comparison.as_ref().filter(|x| x.unpaired > 0) {
-            notes.push(format!(
-                "cell `{}`: {} seed(s) ran only one of `{baseline}` and `{robust}` and are left out of the pairing",
-                c.spec.id, cmp.unpaired
-            ));
-        }
+        let comparison = arm_comparison(c, (baseline, robust), notes)?;
         let no_eps: &[&EpisodeRecord] = &[];
         let on_clean = |arm: &str| clean_cell.map_or(no_eps, |cc| cc.episodes(arm));
         let recovered = recovered(
@@ -1065,6 +1034,45 @@ fn main_rows(
         r.holm_mcnemar = m;
     }
     Ok(main)
+}
+
+/// Cell `c`'s robust-vs-baseline comparison; `None`, with a note, when the cell has not
+/// run or lacks an arm. Seeds that ran only one arm are noted (they are left out).
+fn arm_comparison(
+    c: &CellData<'_>,
+    (baseline, robust): (&str, &str),
+    notes: &mut Vec<String>,
+) -> Result<Option<Comparison>, ReportError> {
+    if c.eps.iter().all(|v| v.is_empty()) {
+        notes.push(format!(
+            "cell `{}` {NOT_RUN} (a resumed sweep fills it)",
+            c.spec.id
+        ));
+        return Ok(None);
+    }
+    if !(c.has(baseline) && c.has(robust)) {
+        notes.push(format!(
+            "cell `{}` lacks arm `{}`: no comparison",
+            c.spec.id,
+            if c.has(baseline) { robust } else { baseline }
+        ));
+        return Ok(None);
+    }
+    let what = format!("cell `{}`, `{robust}` vs `{baseline}`", c.spec.id);
+    let cmp = compare(
+        c.episodes(baseline),
+        c.episodes(robust),
+        robust,
+        &what,
+        c.mcnemar,
+    )?;
+    if cmp.unpaired > 0 {
+        notes.push(format!(
+            "cell `{}`: {} seed(s) ran only one of `{baseline}` and `{robust}` and are left out of the pairing",
+            c.spec.id, cmp.unpaired
+        ));
+    }
+    Ok(Some(cmp))
 }
 
 /// The robust-vs-baseline comparison on the clean cell `clean` (index `cj`), from `tests`

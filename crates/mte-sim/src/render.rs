@@ -849,113 +849,126 @@ fn blend_set(cv: &mut Canvas, x: i32, y: i32, c: [u8; 3], brightness: f32) {
 /// pygame `draw_aaline` (2.6.1, blend on) in its single-precision arithmetic: Wu's line with
 /// one-pixel end caps, clipped one pixel beyond the surface.
 fn aaline(cv: &mut Canvas, from_x: f32, from_y: f32, to_x: f32, to_y: f32, c: [u8; 3]) {
-    let (mut fx, mut fy, mut tx, mut ty) = (from_x, from_y, to_x, to_y);
-    let mut dx = tx - fx;
-    let mut dy = ty - fy;
+    let (dx, dy) = (to_x - from_x, to_y - from_y);
     if f64::from(dx).abs() < 0.0001 && f64::from(dy).abs() < 0.0001 {
-        let x = (f64::from(fx) + 0.5).floor() as i32;
-        let y = (f64::from(fy) + 0.5).floor() as i32;
+        let x = (f64::from(from_x) + 0.5).floor() as i32;
+        let y = (f64::from(from_y) + 0.5).floor() as i32;
         blend_set(cv, x, y, c, 1.0);
         return;
     }
-    let (mut clip_left, mut clip_top) = (-1.0f32, -1.0f32);
-    let mut clip_right = clip_left + SIDE as f32 + 1.0;
-    let mut clip_bottom = clip_top + SIDE as f32 + 1.0;
-    let steep = dx.abs() < dy.abs();
-    if steep {
-        std::mem::swap(&mut fx, &mut fy);
-        std::mem::swap(&mut tx, &mut ty);
-        std::mem::swap(&mut dx, &mut dy);
-        std::mem::swap(&mut clip_left, &mut clip_top);
-        std::mem::swap(&mut clip_right, &mut clip_bottom);
+    if let Some(line) = WuLine::clipped([from_x, from_y], [to_x, to_y]) {
+        line.draw(cv, c);
     }
-    if dx < 0.0 {
-        std::mem::swap(&mut fx, &mut tx);
-        std::mem::swap(&mut fy, &mut ty);
-        dx = -dx;
-        dy = -dy;
-    }
-    if tx <= clip_left || fx >= clip_right {
-        return;
-    }
-    let gradient = dy / dx;
-    if fx < clip_left {
-        fy += gradient * (clip_left - fx);
-        fx = clip_left;
-    }
-    if tx > clip_right {
-        ty += gradient * (clip_right - tx);
-        tx = clip_right;
-    }
-    if gradient > 0.0 {
-        if ty <= clip_top || fy >= clip_bottom {
-            return;
+}
+
+/// Where [`aaline`] clips, on either axis: one pixel beyond the surface.
+const WU_LO: f32 = -1.0;
+const WU_HI: f32 = WU_LO + SIDE as f32 + 1.0;
+
+/// A line in Wu's (major, minor) coordinates: the major axis is the one the line moves
+/// along faster (`steep`: y), and `from[0] < to[0]`.
+struct WuLine {
+    from: [f32; 2],
+    to: [f32; 2],
+    gradient: f32,
+    steep: bool,
+}
+
+impl WuLine {
+    /// The segment from `a` to `b` (surface x, y), clipped to `[WU_LO, WU_HI]` on both axes;
+    /// `None` when nothing of it is left. pygame's clipping, step for step.
+    fn clipped(a: [f32; 2], b: [f32; 2]) -> Option<Self> {
+        let steep = (b[0] - a[0]).abs() < (b[1] - a[1]).abs();
+        let major = |p: [f32; 2]| if steep { [p[1], p[0]] } else { p };
+        let (mut f, mut t) = (major(a), major(b));
+        if t[0] - f[0] < 0.0 {
+            std::mem::swap(&mut f, &mut t);
         }
-        if fy < clip_top {
-            fx += (clip_top - fy) / gradient;
-            fy = clip_top;
+        if t[0] <= WU_LO || f[0] >= WU_HI {
+            return None;
         }
-        if ty > clip_bottom {
-            tx += (clip_bottom - ty) / gradient;
-            ty = clip_bottom;
+        let gradient = (t[1] - f[1]) / (t[0] - f[0]);
+        if f[0] < WU_LO {
+            f[1] += gradient * (WU_LO - f[0]);
+            f[0] = WU_LO;
         }
-    } else {
-        if fy <= clip_top || ty >= clip_bottom {
-            return;
+        if t[0] > WU_HI {
+            t[1] += gradient * (WU_HI - t[0]);
+            t[0] = WU_HI;
         }
-        if ty < clip_top {
-            tx += (clip_top - ty) / gradient;
-            ty = clip_top;
-        }
-        if fy > clip_bottom {
-            fx += (clip_bottom - fy) / gradient;
-            fy = clip_bottom;
-        }
-    }
-    // One pixel down so that `as i32` floors; pixels are drawn one higher.
-    fy += 1.0;
-    ty += 1.0;
-    // (major, minor) coordinates to surface (x, y).
-    let put = |cv: &mut Canvas, major: i32, minor: i32, b: f32| {
-        if steep {
-            blend_set(cv, minor, major, c, b);
+        // On the minor axis, the end that leaves first depends on the slope's sign.
+        let (lo, hi) = if gradient > 0.0 {
+            (&mut f, &mut t)
         } else {
-            blend_set(cv, major, minor, c, b);
+            (&mut t, &mut f)
+        };
+        if hi[1] <= WU_LO || lo[1] >= WU_HI {
+            return None;
         }
-    };
-    let mut x_start = fx as i32;
-    let y_end = fy + gradient * (x_start as f32 - fx);
-    let mut intersect_y = y_end;
-    if tx > clip_left + 1.0 {
-        let x_gap = (1 + x_start) as f32 - fx;
+        if lo[1] < WU_LO {
+            lo[0] += (WU_LO - lo[1]) / gradient;
+            lo[1] = WU_LO;
+        }
+        if hi[1] > WU_HI {
+            hi[0] += (WU_HI - hi[1]) / gradient;
+            hi[1] = WU_HI;
+        }
+        // One pixel down so that `as i32` floors; pixels are drawn one higher.
+        f[1] += 1.0;
+        t[1] += 1.0;
+        Some(Self {
+            from: f,
+            to: t,
+            gradient,
+            steep,
+        })
+    }
+
+    /// Blends pixel (major, minor) at `brightness`.
+    fn put(&self, cv: &mut Canvas, major: i32, minor: i32, c: [u8; 3], brightness: f32) {
+        if self.steep {
+            blend_set(cv, minor, major, c, brightness);
+        } else {
+            blend_set(cv, major, minor, c, brightness);
+        }
+    }
+
+    /// The two end caps, weighted by how much of their pixel column the line covers, then
+    /// the two pixels of each column between them.
+    fn draw(&self, cv: &mut Canvas, c: [u8; 3]) {
+        let ([fx, fy], [tx, ty], gradient) = (self.from, self.to, self.gradient);
+        let mut x_start = fx as i32;
+        let y_end = fy + gradient * (x_start as f32 - fx);
+        let mut intersect_y = y_end;
+        if tx > WU_LO + 1.0 {
+            self.cap(cv, x_start, y_end, (1 + x_start) as f32 - fx, c);
+            intersect_y += gradient;
+            x_start += 1;
+        }
+        let x_end = f64::from(tx).ceil() as i32;
+        if fx < WU_HI - 1.0 {
+            let y_end = ty + gradient * (x_end as f32 - tx);
+            self.cap(cv, x_end, y_end, (1 - x_end) as f32 + tx, c);
+        }
+        for x in x_start..x_end {
+            let y = intersect_y as i32;
+            let brightness = 1.0 - intersect_y + y as f32;
+            self.put(cv, x, y - 1, c, brightness);
+            if (y as f32) < intersect_y {
+                self.put(cv, x, y, c, 1.0 - brightness);
+            }
+            intersect_y += gradient;
+        }
+    }
+
+    /// One end cap: the column `x` at minor coordinate `y_end`, covered `x_gap` of a pixel.
+    fn cap(&self, cv: &mut Canvas, x: i32, y_end: f32, x_gap: f32, c: [u8; 3]) {
         let brightness = y_end - (y_end as i32) as f32;
         let minor = y_end as i32;
         if ((y_end as i32) as f32) < y_end {
-            put(cv, x_start, minor, brightness * x_gap);
+            self.put(cv, x, minor, c, brightness * x_gap);
         }
-        put(cv, x_start, minor - 1, (1.0 - brightness) * x_gap);
-        intersect_y += gradient;
-        x_start += 1;
-    }
-    let x_end = f64::from(tx).ceil() as i32;
-    if fx < clip_right - 1.0 {
-        let y_end = ty + gradient * (x_end as f32 - tx);
-        let x_gap = (1 - x_end) as f32 + tx;
-        let brightness = y_end - (y_end as i32) as f32;
-        let minor = y_end as i32;
-        if ((y_end as i32) as f32) < y_end {
-            put(cv, x_end, minor, brightness * x_gap);
-        }
-        put(cv, x_end, minor - 1, (1.0 - brightness) * x_gap);
-    }
-    for x in x_start..x_end {
-        let y = intersect_y as i32;
-        let brightness = 1.0 - intersect_y + y as f32;
-        put(cv, x, y - 1, brightness);
-        if (y as f32) < intersect_y {
-            put(cv, x, y, 1.0 - brightness);
-        }
-        intersect_y += gradient;
+        self.put(cv, x, minor - 1, c, (1.0 - brightness) * x_gap);
     }
 }
 

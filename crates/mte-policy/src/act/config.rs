@@ -23,7 +23,11 @@ pub struct ActConfig {
     /// Always "act" (LeRobot's registry key).
     #[serde(rename = "type")]
     pub kind: String,
-    /// Observation steps (ACT: 1).
+    /// Observation steps. LeRobot's ACT refuses anything but 1. mte extension, for state-only
+    /// policies: `k > 1` feeds each state token (and the CVAE encoder's) the state vectors of
+    /// the last `k` steps, each normalised, concatenated oldest first; the chunk's row 0 is
+    /// then the action at the oldest of those steps, as for Diffusion Policy (`T_o = k`), so
+    /// `chunk_size - k + 1` rows are executable. LeRobot cannot load such a checkpoint.
     pub n_obs_steps: usize,
     /// Actions per chunk (T_p).
     pub chunk_size: usize,
@@ -221,11 +225,18 @@ impl ActConfig {
                 return Err(config_err(name, v, ">= 1"));
             }
         }
-        if self.n_obs_steps != 1 {
+        if self.n_obs_steps == 0 || self.n_obs_steps > self.chunk_size {
             return Err(config_err(
                 "n_obs_steps",
                 self.n_obs_steps,
-                "1 (ACT sees one step)",
+                format!("1..={} (chunk_size)", self.chunk_size),
+            ));
+        }
+        if self.n_obs_steps > 1 && self.has_images() {
+            return Err(config_err(
+                "n_obs_steps",
+                self.n_obs_steps,
+                "1 with a camera (mte's ACT stacks past states, not past frames)",
             ));
         }
         if !self.dim_model.is_multiple_of(self.n_heads) {
@@ -361,6 +372,17 @@ impl ActConfig {
         self.dim_of(FeatureType::Env)
     }
 
+    /// The width of the robot-state token's input: [`Self::state_dim`] per observed step.
+    pub fn state_input_dim(&self) -> Option<usize> {
+        self.state_dim().map(|d| d * self.n_obs_steps)
+    }
+
+    /// The width of the environment-state token's input: [`Self::env_state_dim`] per
+    /// observed step.
+    pub fn env_state_input_dim(&self) -> Option<usize> {
+        self.env_state_dim().map(|d| d * self.n_obs_steps)
+    }
+
     /// The action dimension.
     pub fn action_dim(&self) -> Result<usize, PolicyError> {
         action_dim_of(&self.output_features)
@@ -389,6 +411,34 @@ impl ActConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Past states stack for a state-only ACT; zero steps, more than a chunk, or history with
+    /// a camera are refused by name.
+    #[test]
+    fn several_observed_steps_are_a_state_only_extension() {
+        let two = ActConfig {
+            n_obs_steps: 2,
+            ..ActConfig::cpu()
+        };
+        two.validate().expect("two steps of state");
+        assert_eq!(two.state_input_dim(), Some(4));
+        assert_eq!(two.env_state_input_dim(), Some(32));
+        assert_eq!(ActConfig::cpu().env_state_input_dim(), Some(16));
+        for bad in [
+            ActConfig {
+                n_obs_steps: 0,
+                ..ActConfig::cpu()
+            },
+            ActConfig {
+                n_obs_steps: ActConfig::cpu().chunk_size + 1,
+                ..ActConfig::cpu()
+            },
+            two.clone().with_camera("observation.image", [3, 32, 32]),
+        ] {
+            let e = bad.validate().expect_err("refused").to_string();
+            assert!(e.contains("n_obs_steps"), "{e}");
+        }
+    }
 
     #[test]
     fn presets_validate_and_bad_fields_are_named() {

@@ -331,9 +331,10 @@ impl Vision {
 /// The normalised observations of a batch, as the config has them.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct ActInputs<'a> {
-    /// Robot state `(B, s)`.
+    /// Robot state `(B, k s)`: the `k = n_obs_steps` observed steps' states side by side,
+    /// oldest first.
     pub state: Option<&'a Tensor>,
-    /// Environment state `(B, e)`.
+    /// Environment state `(B, k e)`, as `state`.
     pub env: Option<&'a Tensor>,
     /// One `(B, 3, H, W)` batch of normalised frames per camera, in the config's order.
     pub images: &'a [Tensor],
@@ -386,11 +387,11 @@ impl ActNet {
         let a = c.action_dim().map_err(candle_core::Error::wrap)?;
         let lin = |inp: usize, name: &str| candle_nn::linear(inp, dm, vb.pp(name));
         let state_proj = c
-            .state_dim()
+            .state_input_dim()
             .map(|s| lin(s, "encoder_robot_state_input_proj"))
             .transpose()?;
         let env_proj = c
-            .env_state_dim()
+            .env_state_input_dim()
             .map(|e| lin(e, "encoder_env_state_input_proj"))
             .transpose()?;
         let n_1d = 1 + usize::from(state_proj.is_some()) + usize::from(env_proj.is_some());
@@ -442,7 +443,7 @@ impl ActNet {
         let dm = c.dim_model;
         let a = c.action_dim().map_err(candle_core::Error::wrap)?;
         let state_proj = c
-            .state_dim()
+            .state_input_dim()
             .map(|s| candle_nn::linear(s, dm, vb.pp("vae_encoder_robot_state_input_proj")))
             .transpose()?;
         let n = 1 + c.chunk_size + usize::from(state_proj.is_some());

@@ -127,10 +127,12 @@ impl ActPolicy {
         &self.stats
     }
 
-    /// A batch of single observations as tensors (states normalised, frames in [0, 1]).
+    /// A batch of observations as tensors (states normalised, frames in [0, 1]): `obs` holds
+    /// `k = n_obs_steps` consecutive observations per sample, oldest first (one per sample
+    /// for LeRobot's ACT), and each sample's `k` state vectors become one row.
     ///
     /// # Errors
-    /// An absent or misshapen input, named.
+    /// An absent or misshapen input, named; a length that is not a multiple of `k`.
     pub fn obs_tensors(&self, obs: &[&Observation]) -> Result<ObsTensors, PolicyError> {
         let mut t = self.obs_tensors_without_image(obs)?;
         let Some(cam) = self.cameras.first() else {
@@ -156,6 +158,14 @@ impl ActPolicy {
         obs: &[&Observation],
     ) -> Result<ObsTensors, PolicyError> {
         let dev = Device::Cpu;
+        let k = self.config().n_obs_steps;
+        if obs.is_empty() || !obs.len().is_multiple_of(k) {
+            return Err(crate::error::config_err(
+                "observations",
+                obs.len(),
+                format!("a positive multiple of n_obs_steps = {k} (that many per sample)"),
+            ));
+        }
         let rows = |norm: &Normalizer,
                     get: &dyn Fn(&Observation) -> Option<Vec<f32>>,
                     name: &'static str| {
@@ -174,7 +184,8 @@ impl ActPolicy {
                 norm.normalize(&mut v);
                 flat.extend(v);
             }
-            Ok::<_, PolicyError>(Tensor::from_vec(flat, (obs.len(), norm.dim()), &dev)?)
+            let shape = (obs.len() / k, k * norm.dim());
+            Ok::<_, PolicyError>(Tensor::from_vec(flat, shape, &dev)?)
         };
         let state = self
             .state_norm
@@ -280,13 +291,36 @@ impl ActPolicy {
         self.action_norm.normalize(row);
     }
 
-    /// The unnormalised chunk `(chunk_size x A)` for one observation (latent zero).
+    /// The unnormalised chunk `(chunk_size x A)` for one observation (latent zero; a policy
+    /// of `n_obs_steps` > 1 needs [`ActPolicy::predict_history`]).
     pub fn predict(&self, obs: &Observation) -> Result<Vec<f32>, PolicyError> {
         Ok(self.predict_many(&[obs])?.remove(0))
     }
 
-    /// The chunks of several observations in one pass; each is bit for bit what
-    /// [`ActPolicy::predict`] gives alone (the products run per sample at inference).
+    /// The chunk for the last `n_obs_steps` observations of `history` (oldest first).
+    ///
+    /// # Errors
+    /// A history shorter than `n_obs_steps`, and what [`ActPolicy::predict_many`] refuses.
+    pub fn predict_history(&self, history: &[Observation]) -> Result<Vec<f32>, PolicyError> {
+        let refs: Vec<&Observation> = self.last_steps(history)?.iter().collect();
+        Ok(self.predict_many(&refs)?.remove(0))
+    }
+
+    /// The last `n_obs_steps` observations of `history`.
+    fn last_steps<'h>(&self, history: &'h [Observation]) -> Result<&'h [Observation], PolicyError> {
+        let k = self.config().n_obs_steps;
+        history
+            .len()
+            .checked_sub(k)
+            .map(|from| &history[from..])
+            .ok_or_else(|| {
+                crate::error::config_err("history", history.len(), format!(">= {k} observations"))
+            })
+    }
+
+    /// The chunks of several samples in one pass (`obs` as [`ActPolicy::obs_tensors`] takes
+    /// them); each is bit for bit what the sample gives alone (the products run per sample
+    /// at inference).
     pub fn predict_many(&self, obs: &[&Observation]) -> Result<Vec<Vec<f32>>, PolicyError> {
         let t = self.obs_tensors(obs)?;
         let actions = self.forward_with_image(&t, t.env.as_ref(), t.image.as_ref())?;
@@ -347,7 +381,7 @@ impl ChunkPolicy for ActPolicy {
         self.config().chunk_size
     }
     fn n_obs_steps(&self) -> usize {
-        1
+        self.config().n_obs_steps
     }
     fn action_dim(&self) -> usize {
         self.action_norm.dim()
@@ -367,14 +401,10 @@ impl ChunkPolicy for ActPolicy {
         &self,
         queries: &mut [crate::policy::Query<'_>],
     ) -> Result<Vec<Vec<f32>>, PolicyError> {
-        let obs = queries
-            .iter()
-            .map(|q| {
-                q.history
-                    .last()
-                    .ok_or_else(|| crate::error::config_err("history", 0, "1 observation"))
-            })
-            .collect::<Result<Vec<_>, _>>()?;
+        let mut obs = Vec::new();
+        for q in queries.iter() {
+            obs.extend(self.last_steps(q.history)?);
+        }
         self.predict_many(&obs)
     }
     /// ACT is deterministic at inference (latent zero): `rng` is not drawn from.
@@ -383,10 +413,7 @@ impl ChunkPolicy for ActPolicy {
         history: &[Observation],
         _rng: &mut dyn RngCore,
     ) -> Result<Vec<f32>, PolicyError> {
-        let obs = history
-            .last()
-            .ok_or_else(|| crate::error::config_err("history", 0, "1 observation"))?;
-        self.predict(obs)
+        self.predict_history(history)
     }
 }
 
@@ -395,7 +422,8 @@ impl ChunkPolicy for ActPolicy {
 /// clean observation, by `step * sign(gradient)` per iteration inside the L-infinity ball of
 /// radius `eps`. What is perturbed: the camera frame in [0, 1] (clipped to [0, 1]), as the
 /// protocol attacks pixels, when the policy has a camera; otherwise the *normalised*
-/// environment state (PushT: the block keypoints). The agent's own position is left alone.
+/// environment state (PushT: the block keypoints) of every observed step. The agent's own
+/// position is left alone.
 /// That loss is flat at the clean observation (its minimum), so the attack always starts from
 /// a uniform point in the ball (drawn from `attack_rng`), whatever `random_start` says;
 /// `samples` is unused (ACT is deterministic).
@@ -408,10 +436,8 @@ impl AttackablePolicy for ActPolicy {
         _sample_rng: &mut dyn RngCore,
     ) -> Result<Vec<f32>, PolicyError> {
         pgd.validate()?;
-        let obs = history
-            .last()
-            .ok_or_else(|| crate::error::config_err("history", 0, "1 observation"))?;
-        let t = self.obs_tensors(&[obs])?;
+        let obs: Vec<&Observation> = self.last_steps(history)?.iter().collect();
+        let t = self.obs_tensors(&obs)?;
         let pixels = t.image.is_some();
         let x0 = match (&t.image, &t.env) {
             (Some(img), _) => img.clone(),
@@ -512,5 +538,98 @@ mod tests {
         let free = pgd_ascent(&x0, &pgd, &mut rng, &Ok, &|x| Ok(x.sum_all()?)).expect("ascent");
         let f = free.to_vec1::<f32>().expect("values");
         assert!(f.iter().all(|v| (v - 0.1).abs() < 1e-6), "{f:?}");
+    }
+
+    /// A two-step keypoint ACT with random weights and unit statistics.
+    fn two_step() -> ActPolicy {
+        let c = ActConfig {
+            n_obs_steps: 2,
+            chunk_size: 5,
+            n_action_steps: 4,
+            dim_model: 16,
+            n_heads: 2,
+            dim_feedforward: 32,
+            n_encoder_layers: 1,
+            n_vae_encoder_layers: 1,
+            latent_dim: 4,
+            ..ActConfig::cpu()
+        };
+        let stat = |d: usize| crate::normalize::Stats {
+            min: vec![0.0; d],
+            max: vec![512.0; d],
+            mean: vec![200.0; d],
+            std: vec![100.0; d],
+        };
+        let stats = [
+            ("observation.state", stat(2)),
+            ("observation.environment_state", stat(16)),
+            ("action", stat(2)),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect();
+        let vb = crate::init::seeded_var_builder(&VarMap::new(), 3, DType::F32, &Device::Cpu);
+        ActPolicy::new(c, stats, vb).expect("policy")
+    }
+
+    fn obs(x: f32) -> Observation {
+        Observation {
+            state: vec![x, 300.0 - x],
+            env_state: Some((0..16).map(|k| x + 3.0 * k as f32).collect()),
+            image: None,
+            wrist_image: None,
+        }
+    }
+
+    /// A two-step ACT reads both steps of its history (the older one changes the chunk),
+    /// ignores anything older, answers a batch as it answers each query, and refuses a
+    /// history of one.
+    #[test]
+    fn a_two_step_act_reads_the_last_two_observations() {
+        let p = two_step();
+        assert_eq!(ChunkPolicy::n_obs_steps(&p), 2);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+        let h = [obs(10.0), obs(50.0), obs(60.0)];
+        let chunk = p.predict_chunk(&h, &mut rng).expect("chunk");
+        assert_eq!(chunk.len(), 5 * 2);
+        assert!(chunk.iter().all(|v| v.is_finite()));
+        assert_eq!(p.predict_chunk(&h[1..], &mut rng).expect("last two"), chunk);
+        let other_old = [obs(90.0), obs(60.0)];
+        assert_ne!(p.predict_chunk(&other_old, &mut rng).expect("chunk"), chunk);
+        let e = p.predict_chunk(&h[2..], &mut rng).expect_err("one step");
+        assert!(e.to_string().contains("history"), "{e}");
+        let e = p.predict(&h[2]).expect_err("one observation for two steps");
+        assert!(e.to_string().contains("n_obs_steps"), "{e}");
+        let (mut r1, mut r2) = (
+            rand_chacha::ChaCha8Rng::seed_from_u64(1),
+            rand_chacha::ChaCha8Rng::seed_from_u64(2),
+        );
+        let mut queries = [
+            crate::policy::Query {
+                history: &h,
+                rng: &mut r1,
+            },
+            crate::policy::Query {
+                history: &other_old,
+                rng: &mut r2,
+            },
+        ];
+        let both = p.predict_chunks(&mut queries).expect("batch");
+        assert_eq!(both[0], chunk);
+        assert_eq!(both[1], p.predict_history(&other_old).expect("alone"));
+        // The keypoint attack perturbs both steps' keypoints and moves the chunk.
+        let pgd = PgdConfig {
+            eps: 0.5,
+            step: 0.1,
+            iterations: 3,
+            random_start: true,
+            samples: 1,
+        };
+        let attacked = p
+            .predict_chunk_attacked(&h, &pgd, &mut r1, &mut r2)
+            .expect("attacked");
+        assert_eq!(attacked.len(), chunk.len());
+        assert!(attacked.iter().all(|v| v.is_finite()));
+        assert_ne!(attacked, chunk);
     }
 }

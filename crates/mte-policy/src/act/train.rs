@@ -212,8 +212,21 @@ impl FeatureCache {
     }
 }
 
-/// Frames `idx` of `data` as a normalised batch (targets: the next `chunk_size` actions);
-/// with a `cache`, the frames' feature maps from it instead of the frames.
+/// Each sample frame's `k` observed frames, oldest first; steps before its episode's first
+/// frame repeat that frame (Diffusion Policy's padding of the observation history).
+fn history_frames(starts: &[usize], idx: &[usize], k: usize) -> Vec<usize> {
+    idx.iter()
+        .flat_map(|&f| {
+            let first = starts[starts.partition_point(|&st| st <= f) - 1];
+            (0..k).map(move |j| (f + j + 1).saturating_sub(k).max(first))
+        })
+        .collect()
+}
+
+/// Frames `idx` of `data` as a normalised batch: each sample's `n_obs_steps` observed frames
+/// ending at its frame, and as targets the `chunk_size` actions from the oldest of them on
+/// (steps outside the episode repeat its first or last action and are marked padding); with
+/// a `cache`, the frames' feature maps from it instead of the frames.
 fn batch(
     policy: &ActPolicy,
     data: &TrainData,
@@ -223,19 +236,23 @@ fn batch(
     rng: &mut ChaCha8Rng,
 ) -> Result<Batch, PolicyError> {
     let c = policy.config();
-    let (s, a) = (c.chunk_size, c.action_dim()?);
-    let obs = observations(policy, data, idx, cache.is_none())?;
+    let (s, a, k) = (c.chunk_size, c.action_dim()?, c.n_obs_steps);
+    let observed = history_frames(starts, idx, k);
+    let obs = observations(policy, data, &observed, cache.is_none())?;
     let mut actions = Vec::with_capacity(idx.len() * s * a);
     let mut pad = Vec::with_capacity(idx.len() * s);
     for &f in idx {
         let ep = starts.partition_point(|&st| st <= f) - 1;
-        let end = starts[ep + 1];
-        for k in 0..s {
-            let g = (f + k).min(end - 1);
+        let (first, end) = (starts[ep], starts[ep + 1]);
+        for r in 0..s {
+            // Frame f - (k - 1) + r, kept inside the episode.
+            let t = (f + r + 1).checked_sub(k).filter(|&t| t >= first);
+            let g = t.unwrap_or(first).min(end - 1);
             let mut row = data.action[g * a..(g + 1) * a].to_vec();
             policy.normalize_action(&mut row);
             actions.extend(row);
-            pad.push(if f + k >= end { 1f32 } else { 0.0 });
+            let inside = t.is_some_and(|t| t < end);
+            pad.push(if inside { 0f32 } else { 1.0 });
         }
     }
     let b = idx.len();
@@ -608,6 +625,81 @@ mod tests {
         };
         data.stats.insert("observation.image".into(), img);
         (c, data)
+    }
+
+    #[test]
+    fn history_frames_repeat_each_episodes_first_frame() {
+        let starts = [0, 3, 7];
+        assert_eq!(history_frames(&starts, &[0, 1, 3, 5], 1), vec![0, 1, 3, 5]);
+        assert_eq!(
+            history_frames(&starts, &[0, 1, 3, 5], 2),
+            vec![0, 0, 0, 1, 3, 3, 4, 5]
+        );
+        assert_eq!(history_frames(&starts, &[4], 3), vec![3, 3, 4]);
+    }
+
+    /// With two observed steps a sample's state row is both frames' normalised states side
+    /// by side, and its targets start at the older frame; steps outside the episode repeat
+    /// its edge actions and are padding.
+    #[test]
+    fn two_observed_steps_align_targets_with_the_older_step() {
+        let (one, _, mut data) = tiny();
+        data.episode_lengths = vec![5, 7];
+        let c = ActConfig {
+            n_obs_steps: 2,
+            ..one.config().clone()
+        };
+        let vb = crate::init::seeded_var_builder(&VarMap::new(), 1, DType::F32, &Device::Cpu);
+        let policy = ActPolicy::new(c, data.stats.clone(), vb).expect("policy");
+        let starts = episode_starts(&data.episode_lengths);
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let b = batch(&policy, &data, &starts, &[5, 6, 11], None, &mut rng).expect("batch");
+        let state = b.obs.state.as_ref().expect("state");
+        assert_eq!(state.dims(), &[3, 4]);
+        let rows = state.to_vec2::<f32>().expect("rows");
+        let norm = |f: usize| {
+            data.state[2 * f..2 * f + 2]
+                .iter()
+                .map(|x| (x - 200.0) / 100.0)
+        };
+        let expect = |a: usize, b: usize| norm(a).chain(norm(b)).collect::<Vec<f32>>();
+        let want = [expect(5, 5), expect(5, 6), expect(10, 11)];
+        for (got, want) in rows.iter().zip(&want) {
+            let close = got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-6);
+            assert!(close && got.len() == want.len(), "{got:?} against {want:?}");
+        }
+        assert_eq!(b.obs.env.as_ref().expect("env").dims(), &[3, 32]);
+        let action = |f: usize| {
+            let mut row = data.action[2 * f..2 * f + 2].to_vec();
+            policy.normalize_action(&mut row);
+            row
+        };
+        let targets = b.actions.to_vec3::<f32>().expect("targets");
+        let pad = b.is_pad.to_vec2::<f32>().expect("pad");
+        // Sample 0 is frame 5, its episode's first: row 0 (frame 4) lies before it.
+        assert_eq!(targets[0][0], action(5));
+        assert_eq!(targets[0][1], action(5));
+        assert_eq!(targets[0][2], action(6));
+        assert_eq!(pad[0], vec![1.0, 0.0, 0.0, 0.0]);
+        assert_eq!(targets[1][0], action(5));
+        assert_eq!(pad[1], vec![0.0; 4]);
+        // Sample 2 is the data's last frame: rows 2 and 3 lie past the episode.
+        assert_eq!(targets[2][0], action(10));
+        assert_eq!(targets[2][3], action(11));
+        assert_eq!(pad[2], vec![0.0, 0.0, 1.0, 1.0]);
+        let mut images = Vec::new();
+        let inputs = policy.inputs_of(&b.obs, &mut images).expect("inputs");
+        let vae = VaeInput {
+            actions: &b.actions,
+            is_pad: &b.is_pad,
+            eps: &b.eps,
+        };
+        let o = policy
+            .net()
+            .forward(&inputs, Some(&vae), None)
+            .expect("forward");
+        let (_, l1, kld) = policy.net().loss(&o, &b.actions, &b.is_pad).expect("loss");
+        assert!(l1.is_finite() && l1 > 0.0 && kld.is_finite(), "{l1} {kld}");
     }
 
     /// A width-16 image ACT (Diffusion Policy's GroupNorm needs multiples of 16) and a

@@ -113,16 +113,7 @@ impl DiffusionPolicy {
         attack_rngs: &mut [&mut (dyn RngCore + '_)],
     ) -> Result<(ObsBatch, Vec<(f32, f32)>), PolicyError> {
         cfg.validate()?;
-        let (target, is_image) = match (&clean.image, &clean.env) {
-            (Some(img), _) => (img.clone(), true),
-            (None, Some(env)) => (env.clone(), false),
-            (None, None) => {
-                return Err(PolicyError::Input {
-                    name: "observation",
-                    reason: "PGD needs an image or an environment state to perturb".into(),
-                });
-            }
-        };
+        let (target, is_image) = pgd_target(clean)?;
         let b = attack_rngs.len();
         let eps = cfg.eps as f32;
         let dtype = target.dtype();
@@ -153,9 +144,6 @@ impl DiffusionPolicy {
         };
         project(&mut x);
         let shape = target.shape().clone();
-        let (tp, d) = (self.config().horizon, self.action_normalizer().dim());
-        let n = cfg.samples;
-        let n_train = self.config().num_train_timesteps;
         // The clean batch with the perturbed channel replaced by `x`.
         let with_perturbed = |x: Vec<f32>| -> Result<ObsBatch, PolicyError> {
             let xt = Tensor::from_vec(x, shape.clone(), self.device())?.to_dtype(dtype)?;
@@ -173,13 +161,7 @@ impl DiffusionPolicy {
         let mut losses = vec![(f32::NAN, f32::NAN); b];
         for it in 0..cfg.iterations {
             let batch = with_perturbed(x.clone())?;
-            let mut timesteps = Vec::with_capacity(b * n);
-            let mut noise = Vec::with_capacity(b * n * tp * d);
-            for rng in attack_rngs.iter_mut() {
-                timesteps.extend((0..n).map(|_| rng.random_range(0..n_train)));
-                noise.extend((0..n * tp * d).map(|_| -> f32 { StandardNormal.sample(&mut **rng) }));
-            }
-            let noise = Tensor::from_vec(noise, (b * n, tp, d), self.device())?.to_dtype(dtype)?;
+            let (timesteps, noise) = self.pgd_draws(attack_rngs, cfg.samples, dtype)?;
             let (loss, g) = self.observation_gradient_per_query(&batch, x0, &noise, &timesteps)?;
             for (l, &v) in losses.iter_mut().zip(&loss) {
                 if it == 0 {
@@ -192,18 +174,33 @@ impl DiffusionPolicy {
                 Some(t) => t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?,
                 None => vec![0.0; x.len()],
             };
-            let step = cfg.step as f32;
-            for (v, gv) in x.iter_mut().zip(&grad) {
-                // sign(0) = 0: a coordinate without gradient does not move.
-                if *gv > 0.0 {
-                    *v += step;
-                } else if *gv < 0.0 {
-                    *v -= step;
-                }
-            }
+            sign_step(&mut x, &grad, cfg.step as f32);
             project(&mut x);
         }
         Ok((with_perturbed(x)?, losses))
+    }
+
+    /// One PGD iteration's draws for each query, from its own stream in query order: its
+    /// `samples` diffusion timesteps, then its noise `(samples, horizon, d)`; the noise of
+    /// all queries as one `(B samples, horizon, d)` tensor of `dtype`.
+    fn pgd_draws(
+        &self,
+        attack_rngs: &mut [&mut (dyn RngCore + '_)],
+        samples: usize,
+        dtype: DType,
+    ) -> Result<(Vec<usize>, Tensor), PolicyError> {
+        let (tp, d) = (self.config().horizon, self.action_normalizer().dim());
+        let (b, n_train) = (attack_rngs.len(), self.config().num_train_timesteps);
+        let mut timesteps = Vec::with_capacity(b * samples);
+        let mut noise = Vec::with_capacity(b * samples * tp * d);
+        for rng in attack_rngs.iter_mut() {
+            timesteps.extend((0..samples).map(|_| rng.random_range(0..n_train)));
+            noise.extend(
+                (0..samples * tp * d).map(|_| -> f32 { StandardNormal.sample(&mut **rng) }),
+            );
+        }
+        let noise = Tensor::from_vec(noise, (b * samples, tp, d), self.device())?;
+        Ok((timesteps, noise.to_dtype(dtype)?))
     }
 
     /// Attack one query: sample the clean chunk as `x_0` (with `sample_rng`), run PGD
@@ -279,4 +276,29 @@ fn max_perturbation(adv: &ObsBatch, clean: &ObsBatch, b: usize) -> Result<Vec<f3
         .chunks(diff.len() / b.max(1))
         .map(|part| part.iter().copied().fold(0f32, f32::max))
         .collect())
+}
+
+/// What PGD perturbs in `clean`, and whether it is a camera frame (kept in [0, 1]): the
+/// frames when the policy has a camera, else the environment state.
+fn pgd_target(clean: &ObsBatch) -> Result<(Tensor, bool), PolicyError> {
+    match (&clean.image, &clean.env) {
+        (Some(img), _) => Ok((img.clone(), true)),
+        (None, Some(env)) => Ok((env.clone(), false)),
+        (None, None) => Err(PolicyError::Input {
+            name: "observation",
+            reason: "PGD needs an image or an environment state to perturb".into(),
+        }),
+    }
+}
+
+/// One signed step: each coordinate moves `step` along its gradient's sign (sign(0) = 0: a
+/// coordinate without gradient does not move).
+fn sign_step(x: &mut [f32], grad: &[f32], step: f32) {
+    for (v, gv) in x.iter_mut().zip(grad) {
+        if *gv > 0.0 {
+            *v += step;
+        } else if *gv < 0.0 {
+            *v -= step;
+        }
+    }
 }

@@ -409,6 +409,26 @@ impl ActConfig {
 }
 
 #[cfg(test)]
+impl ActConfig {
+    /// A tiny keypoint ACT for unit tests: width 16, 2 heads, one encoder and one CVAE
+    /// encoder layer, chunk 4, latent 4, no dropout.
+    pub(crate) fn tiny() -> Self {
+        ActConfig {
+            chunk_size: 4,
+            n_action_steps: 4,
+            dim_model: 16,
+            n_heads: 2,
+            dim_feedforward: 32,
+            n_encoder_layers: 1,
+            n_vae_encoder_layers: 1,
+            latent_dim: 4,
+            dropout: 0.0,
+            ..ActConfig::cpu()
+        }
+    }
+}
+
+#[cfg(test)]
 mod tests {
     use super::*;
 

@@ -545,14 +545,7 @@ mod tests {
         let c = ActConfig {
             n_obs_steps: 2,
             chunk_size: 5,
-            n_action_steps: 4,
-            dim_model: 16,
-            n_heads: 2,
-            dim_feedforward: 32,
-            n_encoder_layers: 1,
-            n_vae_encoder_layers: 1,
-            latent_dim: 4,
-            ..ActConfig::cpu()
+            ..ActConfig::tiny()
         };
         let stat = |d: usize| crate::normalize::Stats {
             min: vec![0.0; d],

@@ -555,16 +555,7 @@ mod tests {
     fn tiny_kl(kl_weight: f64) -> (ActPolicy, VarMap, TrainData) {
         let c = ActConfig {
             kl_weight,
-            chunk_size: 4,
-            n_action_steps: 4,
-            dim_model: 16,
-            n_heads: 2,
-            dim_feedforward: 32,
-            n_encoder_layers: 1,
-            n_vae_encoder_layers: 1,
-            latent_dim: 4,
-            dropout: 0.0,
-            ..ActConfig::cpu()
+            ..ActConfig::tiny()
         };
         let n = 12usize;
         let (mut state, mut env, mut action) = (Vec::new(), Vec::new(), Vec::new());

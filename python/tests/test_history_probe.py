@@ -2,20 +2,16 @@
 vote, and on a synthetic dataset where the next actions depend on a direction that only the
 agent's motion shows, that the probe finds it."""
 
-import importlib.util
 import json
 import pathlib
 
 import numpy as np
 
-TOOL = pathlib.Path(__file__).resolve().parents[2] / "tools/history_probe.py"
+import repo_script
 
 
 def load_tool():
-    spec = importlib.util.spec_from_file_location("history_probe", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return repo_script.load("tools/history_probe.py")
 
 
 def test_previous_frames_and_chunks_stay_in_their_episode():

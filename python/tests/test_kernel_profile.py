@@ -3,22 +3,18 @@ H200 section) on synthetic CSVs: the period of a repeated launch sequence, the b
 shares over one period, and its refusals."""
 
 import gzip
-import importlib.util
-import pathlib
 
 import pytest
 
-TOOL = pathlib.Path(__file__).resolve().parents[2] / "tools/kernel_profile.py"
+import repo_script
+
 HEADER = ('"ID","Process ID","Process Name","Host Name","Kernel Name","Context","Stream",'
           '"Block Size","Grid Size","Device","CC","Section Name","Metric Name","Metric Unit",'
           '"Metric Value"')
 
 
 def load_tool():
-    spec = importlib.util.spec_from_file_location("kernel_profile", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return repo_script.load("tools/kernel_profile.py")
 
 
 def write_csv(path, launches, metric="gpu__time_duration.sum"):

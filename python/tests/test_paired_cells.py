@@ -1,21 +1,16 @@
 """tools/paired_cells.py (the cell-against-cell comparison of docs/experiments/patch_controls)
 on a tiny synthetic run directory: its differences, standard errors and Wilcoxon p-values."""
 
-import importlib.util
 import json
-import pathlib
 
 import numpy as np
 from scipy import stats
 
-TOOL = pathlib.Path(__file__).resolve().parents[2] / "tools/paired_cells.py"
+import repo_script
 
 
 def load_tool():
-    spec = importlib.util.spec_from_file_location("paired_cells", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return repo_script.load("tools/paired_cells.py")
 
 
 def write_cell(run, cell, values):

@@ -270,9 +270,30 @@ pub struct TrainActArgs {
     /// (exact: ACT trains without augmentation); a step then costs about a keypoint policy's.
     #[arg(long)]
     pub freeze_backbone: bool,
+    /// Learning rate over the run: `constant` (LeRobot's ACT) or `cosine` (Diffusion
+    /// Policy's: linear warm-up over `--lr-warmup` steps, then cosine decay to 0 at the last).
+    #[arg(long, value_enum, default_value_t = LrScheduleArg::Constant)]
+    pub lr_schedule: LrScheduleArg,
+    /// With `--lr-schedule cosine`: warm-up steps.
+    #[arg(long, default_value_t = 500)]
+    pub lr_warmup: usize,
+    /// Keep an exponential moving average of the weights with this decay ceiling (Diffusion
+    /// Policy's is 0.999): the checkpoint's model.safetensors is then the average and
+    /// raw_model.safetensors the optimised weights (what a resume continues from).
+    #[arg(long, value_name = "DECAY")]
+    pub ema: Option<f64>,
     /// Output directory; if it holds a training state, training resumes from it.
     #[arg(long, short, value_name = "DIR")]
     pub out: PathBuf,
+}
+
+/// `mte train act --lr-schedule`
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum LrScheduleArg {
+    /// The config's learning rates throughout.
+    Constant,
+    /// Linear warm-up, then cosine decay to 0.
+    Cosine,
 }
 
 /// `mte train encoder`

@@ -11,7 +11,8 @@
 //! - Shared pieces: [`vision`] (the ResNet-18-GN encoder), [`kernels`] (fused CPU kernels with
 //!   backward passes), [`normalize`], [`init`] (seeded initialisation; candle's own CPU
 //!   initialisers use a global RNG), `training` (the loop's model-independent pieces:
-//!   per-step random streams, checkpoint schedule, gradient clipping, the loss trace),
+//!   per-step random streams, checkpoint schedule, gradient clipping, the warm-up + cosine
+//!   learning rate, the weights' moving average, the loss trace),
 //!   [`memory`] (an opt-in allocator setting for binaries).
 //!
 //! Conventions: observations and actions unnormalised in the environment's units (PushT:

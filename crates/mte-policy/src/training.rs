@@ -1,11 +1,12 @@
 //! The model-independent pieces of a training loop, shared by Diffusion Policy (and its
 //! encoder pre-training) and ACT: the per-step random stream, the checkpoint schedule,
-//! global gradient-norm clipping and the loss trace a run reports from.
+//! global gradient-norm clipping, the warm-up + cosine learning rate, the exponential moving
+//! average of the weights and the loss trace a run reports from.
 
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 
-use candle_core::Var;
 use candle_core::backprop::GradStore;
+use candle_core::{Tensor, Var};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -43,6 +44,39 @@ pub(crate) fn clip_gradients(
                 let g = (g * scale)?.detach();
                 grads.insert(v.as_tensor(), g);
             }
+        }
+    }
+    Ok(())
+}
+
+/// Learning rate at `step` (0-based): linear warm-up to `lr` over `warmup` steps, then cosine
+/// decay to 0 at `total` (Diffusion Policy's schedule).
+pub fn learning_rate(lr: f64, warmup: usize, total: usize, step: usize) -> f64 {
+    if step < warmup {
+        return lr * (step + 1) as f64 / warmup as f64;
+    }
+    let progress = (step - warmup) as f64 / (total.saturating_sub(warmup)).max(1) as f64;
+    lr * 0.5 * (1.0 + (std::f64::consts::PI * progress.min(1.0)).cos())
+}
+
+/// The EMA decay after optimisation step `step` (0-based) under the ceiling `max`: the ramp
+/// `min(max, (1 + step) / (10 + step))`, so early averages forget the initialisation fast.
+pub(crate) fn ema_decay(max: f64, step: usize) -> f64 {
+    max.min((1.0 + step as f64) / (10.0 + step as f64))
+}
+
+/// `ema <- decay ema + (1 - decay) weights` for the named variables `vars` (names that `ema`
+/// lacks are skipped).
+pub(crate) fn ema_update(
+    ema: &mut HashMap<String, Tensor>,
+    vars: &[(String, Var)],
+    decay: f64,
+) -> Result<(), PolicyError> {
+    for (k, v) in vars {
+        if let Some(prev) = ema.get_mut(k) {
+            // detach: otherwise every EMA tensor keeps the previous one alive through the
+            // autograd graph, and memory grows by a model copy per step.
+            *prev = ((&*prev * decay)? + (v.as_tensor().detach() * (1.0 - decay))?)?.detach();
         }
     }
     Ok(())
@@ -116,6 +150,37 @@ mod tests {
         assert_eq!(t.first(), (0..50).map(|i| i as f32).collect::<Vec<_>>());
         assert_eq!(t.recent(), (200..300).map(|i| i as f32).collect::<Vec<_>>());
         assert_eq!(t.recent_mean(), Some(249.5));
+    }
+
+    #[test]
+    fn the_learning_rate_warms_up_linearly_then_decays_to_zero() {
+        let lr = |s| learning_rate(1.0, 10, 110, s);
+        assert!((lr(0) - 0.1).abs() < 1e-12 && (lr(9) - 1.0).abs() < 1e-12);
+        assert!((lr(10) - 1.0).abs() < 1e-12, "the peak right after warm-up");
+        assert!((lr(60) - 0.5).abs() < 1e-12, "half way down at mid-decay");
+        assert!(
+            lr(110).abs() < 1e-12 && lr(500).abs() < 1e-12,
+            "zero at and past the end"
+        );
+        assert!((1..110).all(|s| lr(s) <= lr(s - 1) + 1e-12 || s < 10));
+    }
+
+    #[test]
+    fn the_ema_ramps_its_decay_and_averages_the_named_weights() -> Result<(), PolicyError> {
+        assert!((ema_decay(0.999, 0) - 0.1).abs() < 1e-12);
+        assert_eq!(ema_decay(0.999, 1_000_000), 0.999);
+        let dev = candle_core::Device::Cpu;
+        let w = Var::from_vec(vec![4f32, 8.0], 2, &dev)?;
+        let mut ema: HashMap<String, Tensor> =
+            [("w".to_string(), Tensor::from_vec(vec![0f32, 0.0], 2, &dev)?)].into();
+        let vars = vec![
+            ("w".to_string(), w),
+            ("absent".to_string(), Var::from_vec(vec![1f32], 1, &dev)?),
+        ];
+        ema_update(&mut ema, &vars, 0.75)?;
+        assert_eq!(ema["w"].to_vec1::<f32>()?, vec![1.0, 2.0]);
+        assert_eq!(ema.len(), 1, "a variable the average lacks is not added");
+        Ok(())
     }
 
     #[test]

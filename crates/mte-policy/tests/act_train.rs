@@ -220,3 +220,108 @@ fn bad_settings_are_typed_errors() {
     let e = train(&data(), bad, &tc, dir.path(), &mut |_, _, _| {}).expect_err("heads");
     assert!(e.to_string().contains("n_heads"), "{e}");
 }
+
+/// Every tensor of a `model.safetensors`-layout file, flattened, by name.
+fn tensors(path: &std::path::Path) -> std::collections::BTreeMap<String, Vec<f32>> {
+    let dev = candle_core::Device::Cpu;
+    candle_core::safetensors::load(path, &dev)
+        .expect("weights")
+        .into_iter()
+        .map(|(k, t)| (k, t.flatten_all().and_then(|t| t.to_vec1()).expect("f32")))
+        .collect()
+}
+
+/// With an average of the weights: the optimised weights move exactly as without it (the
+/// average only reads them), the policy file is the average and the optimised weights lie
+/// beside it, and a resumed run goes on from the saved average: after one more step the
+/// average is `d · saved + (1 − d) · weights` with `d` the decay of that step.
+#[test]
+fn an_averaged_run_keeps_its_raw_weights_and_resumes_its_average() {
+    let base = ActTrainConfig {
+        steps: 20,
+        batch_size: 16,
+        seed: 5,
+        checkpoint_every: 0,
+        ..Default::default()
+    };
+    let averaged = ActTrainConfig {
+        ema_max_decay: Some(0.9),
+        ..base.clone()
+    };
+    let (plain, ema) = (
+        tempfile::tempdir().expect("tmp"),
+        tempfile::tempdir().expect("tmp"),
+    );
+    train(&data(), tiny(), &base, plain.path(), &mut |_, _, _| {}).expect("plain");
+    train(&data(), tiny(), &averaged, ema.path(), &mut |_, _, _| {}).expect("averaged");
+    let raw20 = tensors(&ema.path().join("raw_model.safetensors"));
+    assert_eq!(raw20, tensors(&plain.path().join("model.safetensors")));
+    assert!(!plain.path().join("raw_model.safetensors").exists());
+    let avg20 = tensors(&ema.path().join("model.safetensors"));
+    assert_eq!(
+        avg20.keys().collect::<Vec<_>>(),
+        raw20.keys().collect::<Vec<_>>()
+    );
+    assert_ne!(avg20, raw20, "the average lags the weights");
+    load_policy(ema.path()).expect("the average loads as a policy");
+
+    let one_more = ActTrainConfig {
+        steps: 21,
+        ..averaged
+    };
+    train(&data(), tiny(), &one_more, ema.path(), &mut |_, _, _| {}).expect("resume");
+    let (raw21, avg21) = (
+        tensors(&ema.path().join("raw_model.safetensors")),
+        tensors(&ema.path().join("model.safetensors")),
+    );
+    let d = 0.9f32.min(21.0 / 30.0); // the ramp (1 + 20) / (10 + 20) at step 20
+    let mut worst = 0f32;
+    for (k, a) in &avg21 {
+        for ((&a, &s), &w) in a.iter().zip(&avg20[k]).zip(&raw21[k]) {
+            worst = worst.max((a - (d * s + (1.0 - d) * w)).abs());
+        }
+    }
+    assert!(worst < 1e-5, "the resumed average is off by {worst}");
+    assert_ne!(raw21, raw20, "the resumed run took a step");
+}
+
+/// The cosine schedule changes the run (the learning rate is applied, not just recorded);
+/// a warm-up as long as the run and an average's decay of 1 are typed errors.
+#[test]
+fn the_cosine_schedule_is_applied_and_bad_recipes_are_refused() {
+    use mte_policy::act::train::LrSchedule;
+    let base = ActTrainConfig {
+        steps: 10,
+        batch_size: 8,
+        seed: 2,
+        checkpoint_every: 0,
+        ..Default::default()
+    };
+    let cosine = ActTrainConfig {
+        lr_schedule: LrSchedule::Cosine { warmup_steps: 3 },
+        ..base.clone()
+    };
+    let (a, b) = (
+        tempfile::tempdir().expect("tmp"),
+        tempfile::tempdir().expect("tmp"),
+    );
+    train(&data(), tiny(), &base, a.path(), &mut |_, _, _| {}).expect("constant");
+    train(&data(), tiny(), &cosine, b.path(), &mut |_, _, _| {}).expect("cosine");
+    let w = |d: &std::path::Path| tensors(&d.join("model.safetensors"));
+    assert_ne!(w(a.path()), w(b.path()));
+    assert_eq!(LrSchedule::Constant.factor(7, 10), 1.0);
+    assert!(LrSchedule::Cosine { warmup_steps: 3 }.factor(9, 10) < 0.1);
+
+    let long_warmup = ActTrainConfig {
+        lr_schedule: LrSchedule::Cosine { warmup_steps: 10 },
+        ..base.clone()
+    };
+    let e = train(&data(), tiny(), &long_warmup, a.path(), &mut |_, _, _| {}).expect_err("warm-up");
+    assert!(e.to_string().contains("warmup_steps"), "{e}");
+    let no_decay = ActTrainConfig {
+        ema_max_decay: Some(1.0),
+        ..base
+    };
+    let e = train(&data(), tiny(), &no_decay, a.path(), &mut |_, _, _| {}).expect_err("decay 1");
+    assert!(e.to_string().contains("ema_max_decay"), "{e}");
+}

@@ -11,8 +11,8 @@ use mte_policy::pretrain::{EncoderPretrainConfig, pretrain_encoder, save_encoder
 use mte_policy::train::{TrainConfig, TrainData, train};
 
 use crate::args::{
-    BackboneArg, Cli, Format, PolicyObsArg, PresetArg, TrainActArgs, TrainDiffusionArgs,
-    TrainEncoderArgs,
+    BackboneArg, Cli, Format, LrScheduleArg, PolicyObsArg, PresetArg, TrainActArgs,
+    TrainDiffusionArgs, TrainEncoderArgs,
 };
 use crate::progress::Bar;
 
@@ -167,7 +167,7 @@ pub fn diffusion(cli: &Cli, a: &TrainDiffusionArgs) -> Result<()> {
 /// `mte train act`
 pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
     use mte_policy::act::ActConfig;
-    use mte_policy::act::train::{ActTrainConfig, train as train_act};
+    use mte_policy::act::train::{ActTrainConfig, LrSchedule, train as train_act};
     let mut config = match a.preset {
         PresetArg::Cpu => ActConfig::cpu(),
         PresetArg::Paper => ActConfig::paper(),
@@ -201,6 +201,13 @@ pub fn act(cli: &Cli, a: &TrainActArgs) -> Result<()> {
         init: a.init.clone(),
         backbone_from: a.backbone_from.clone(),
         freeze_backbone: a.freeze_backbone,
+        lr_schedule: match a.lr_schedule {
+            LrScheduleArg::Constant => LrSchedule::Constant,
+            LrScheduleArg::Cosine => LrSchedule::Cosine {
+                warmup_steps: a.lr_warmup,
+            },
+        },
+        ema_max_decay: a.ema,
     };
     let bar = Bar::for_cli(cli, "train act", a.steps);
     let report = train_act(&data, config, &tc, &a.out, &mut |step, l1, kld| {

@@ -360,19 +360,43 @@ impl ActPolicy {
     /// Saves `varmap` (the network's variables, names relative to `model.`) with the config
     /// and statistics as a LeRobot-layout checkpoint directory.
     pub fn save(&self, dir: &Path, varmap: &VarMap) -> Result<(), PolicyError> {
-        write_config(dir, self.config())?;
-        let mut weights: HashMap<String, Tensor> = varmap
+        let weights = varmap
             .data()
             .lock()
             .map_err(|_| ck(dir, "variable map poisoned"))?
             .iter()
-            .map(|(k, v)| (format!("model.{k}"), v.as_tensor().clone()))
+            .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+            .collect();
+        self.save_tensors(dir, &weights)
+    }
+
+    /// [`Self::save`] with the weights `tensors` (names relative to `model.`) in place of
+    /// the variables': a checkpoint of other weights of this network (an average of them).
+    pub fn save_tensors(
+        &self,
+        dir: &Path,
+        tensors: &HashMap<String, Tensor>,
+    ) -> Result<(), PolicyError> {
+        write_config(dir, self.config())?;
+        self.write_weights(&dir.join(WEIGHTS), tensors)?;
+        save_stats(dir, &self.stats)
+    }
+
+    /// Writes `tensors` (names relative to `model.`) as a `model.safetensors` file at `path`,
+    /// with the CVAE encoder's fixed position table when the network has one.
+    pub fn write_weights(
+        &self,
+        path: &Path,
+        tensors: &HashMap<String, Tensor>,
+    ) -> Result<(), PolicyError> {
+        let mut weights: HashMap<String, Tensor> = tensors
+            .iter()
+            .map(|(k, v)| (format!("model.{k}"), v.clone()))
             .collect();
         if let Some(pos) = self.net.vae_pos_enc() {
             weights.insert("model.vae_encoder_pos_enc".into(), pos.clone());
         }
-        candle_core::safetensors::save(&weights, dir.join(WEIGHTS))?;
-        save_stats(dir, &self.stats)
+        Ok(candle_core::safetensors::save(&weights, path)?)
     }
 }
 

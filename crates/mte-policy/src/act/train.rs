@@ -5,8 +5,14 @@
 //! CVAE's noise and dropout masks drawn from a stream keyed by `(seed, step)`. A run
 //! checkpoints every `checkpoint_every` steps and resumes from its output directory
 //! (AdamW's moments restart, as for Diffusion Policy).
+//!
+//! Two parts of Diffusion Policy's recipe are options (LeRobot's ACT uses neither): a
+//! warm-up + cosine learning rate ([`LrSchedule::Cosine`]) and an exponential moving average
+//! of the weights (`ema_max_decay`). With the average, `model.safetensors` holds it (what an
+//! evaluation loads) and `raw_model.safetensors` the optimised weights (what a resume loads).
 
 use std::cell::RefCell;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::backprop::GradStore;
@@ -22,7 +28,9 @@ use super::model::{Dropout, VaeInput};
 use super::policy::{ActPolicy, ObsTensors};
 use crate::error::{PolicyError, config_err};
 use crate::train::TrainData;
-use crate::training::{LossTrace, checkpoint_due, clip_gradients, step_rng};
+use crate::training::{
+    LossTrace, checkpoint_due, clip_gradients, ema_decay, ema_update, learning_rate, step_rng,
+};
 
 /// ACT training settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -52,6 +60,39 @@ pub struct ActTrainConfig {
     /// ACT trains without image augmentation; the cache takes `C h w` floats per frame.
     #[serde(default)]
     pub freeze_backbone: bool,
+    /// The learning rates over the run (both parameter groups scale alike).
+    #[serde(default)]
+    pub lr_schedule: LrSchedule,
+    /// Keep an exponential moving average of the weights with this decay ceiling (the decay
+    /// ramps as `min(max, (1 + step) / (10 + step))`, as Diffusion Policy's); `None`: none
+    /// (LeRobot's ACT).
+    #[serde(default)]
+    pub ema_max_decay: Option<f64>,
+}
+
+/// ACT's learning rate over a run.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LrSchedule {
+    /// The config's learning rates at every step (LeRobot's ACT).
+    #[default]
+    Constant,
+    /// Linear warm-up over `warmup_steps`, then cosine decay to 0 at the run's last step
+    /// (Diffusion Policy's schedule).
+    Cosine {
+        /// Steps of the linear warm-up.
+        warmup_steps: usize,
+    },
+}
+
+impl LrSchedule {
+    /// The factor on the config's learning rates at step `step` (0-based) of `total`.
+    pub fn factor(self, step: usize, total: usize) -> f64 {
+        match self {
+            Self::Constant => 1.0,
+            Self::Cosine { warmup_steps } => learning_rate(1.0, warmup_steps, total, step),
+        }
+    }
 }
 
 /// `mte train act`'s defaults: 20,000 steps of 64 frames, seed 0, a checkpoint every 2,000
@@ -67,6 +108,8 @@ impl Default for ActTrainConfig {
             init: None,
             backbone_from: None,
             freeze_backbone: false,
+            lr_schedule: LrSchedule::Constant,
+            ema_max_decay: None,
         }
     }
 }
@@ -78,6 +121,17 @@ impl ActTrainConfig {
             if v == 0 {
                 return Err(config_err(name, v, ">= 1"));
             }
+        }
+        if let LrSchedule::Cosine { warmup_steps } = self.lr_schedule
+            && warmup_steps >= self.steps
+        {
+            let expected = format!("fewer than the run's {} steps", self.steps);
+            return Err(config_err("warmup_steps", warmup_steps, expected));
+        }
+        if let Some(d) = self.ema_max_decay
+            && !(0.0..1.0).contains(&d)
+        {
+            return Err(config_err("ema_max_decay", d, "in [0, 1)"));
         }
         Ok(())
     }
@@ -289,7 +343,7 @@ pub fn train(
     if frames == 0 {
         return Err(config_err("dataset", 0, "at least one frame"));
     }
-    let mut step = resume(&varmap, out)?;
+    let (mut step, resumed_ema) = resume(&varmap, out, train.ema_max_decay.is_some())?;
     let mut backbone_relative_error = None;
     if step == 0 {
         if let Some(init) = &train.init {
@@ -309,6 +363,12 @@ pub fn train(
     } else {
         None
     };
+    // The average starts at the weights training starts from (or the resumed average).
+    let mut ema = match (train.ema_max_decay, resumed_ema) {
+        (Some(_), Some(e)) => Some(e),
+        (Some(_), None) => Some(variable_copies(&varmap)?),
+        (None, _) => None,
+    };
     let mut opt = Optimisers::new(policy.config(), vars, backbone)?;
     let stepper = Stepper {
         policy: &policy,
@@ -319,13 +379,19 @@ pub fn train(
     };
     let (start_step, mut l1s, mut klds) = (step, LossTrace::default(), LossTrace::default());
     while step < train.steps {
+        if train.lr_schedule != LrSchedule::Constant {
+            opt.scale_learning_rates(train.lr_schedule.factor(step, train.steps));
+        }
         let (l1, kld) = stepper.step(&mut opt, step)?;
+        if let (Some(max), Some(e)) = (train.ema_max_decay, ema.as_mut()) {
+            ema_update(e, &opt.all, ema_decay(max, step))?;
+        }
         step += 1;
         l1s.push(l1);
         klds.push(kld);
         progress(step, l1, kld);
         if checkpoint_due(step, train.checkpoint_every, train.steps) {
-            save(&policy, &varmap, out, step, train)?;
+            save(&policy, &varmap, ema.as_ref(), out, step, train)?;
         }
     }
     Ok(ActTrainReport {
@@ -352,12 +418,18 @@ fn episode_starts(lengths: &[usize]) -> Vec<usize> {
 struct Optimisers {
     main: AdamW,
     backbone: AdamW,
-    /// Every optimised variable, for the global gradient clip.
+    /// The config's learning rates (main, backbone).
+    lrs: (f64, f64),
+    /// Every optimised variable by name, for the global gradient clip and the average.
     all: Vec<(String, Var)>,
 }
 
 impl Optimisers {
-    fn new(config: &ActConfig, vars: Vec<Var>, backbone: Vec<Var>) -> Result<Self, PolicyError> {
+    fn new(
+        config: &ActConfig,
+        vars: Vec<(String, Var)>,
+        backbone: Vec<(String, Var)>,
+    ) -> Result<Self, PolicyError> {
         let adamw = |vars: Vec<Var>, lr: f64| {
             let params = ParamsAdamW {
                 lr,
@@ -366,16 +438,21 @@ impl Optimisers {
             };
             AdamW::new(vars, params)
         };
-        let all = vars
-            .iter()
-            .chain(&backbone)
-            .map(|v| (String::new(), v.clone()))
-            .collect();
+        let all: Vec<(String, Var)> = vars.iter().chain(&backbone).cloned().collect();
+        let unnamed = |named: Vec<(String, Var)>| named.into_iter().map(|(_, v)| v).collect();
+        let lrs = (config.optimizer_lr, config.optimizer_lr_backbone);
         Ok(Self {
-            main: adamw(vars, config.optimizer_lr)?,
-            backbone: adamw(backbone, config.optimizer_lr_backbone)?,
+            main: adamw(unnamed(vars), lrs.0)?,
+            backbone: adamw(unnamed(backbone), lrs.1)?,
+            lrs,
             all,
         })
+    }
+
+    /// Sets both groups' learning rates to `factor` times the config's.
+    fn scale_learning_rates(&mut self, factor: f64) {
+        self.main.set_learning_rate(self.lrs.0 * factor);
+        self.backbone.set_learning_rate(self.lrs.1 * factor);
     }
 
     /// Clips the gradient's global norm at 10 (LeRobot's default) and steps both groups.
@@ -472,22 +549,35 @@ fn warm_start_backbone(
     Ok(ws.relative_error)
 }
 
-/// The variables an optimiser moves, split into (the rest, the backbone's): LeRobot's two
-/// parameter groups. The backbone's frozen BatchNorm tensors are buffers and in neither.
-fn trainable(varmap: &VarMap) -> Result<(Vec<Var>, Vec<Var>), PolicyError> {
+/// The variables an optimiser moves by name, split into (the rest, the backbone's): LeRobot's
+/// two parameter groups. The backbone's frozen BatchNorm tensors are buffers and in neither.
+#[allow(clippy::type_complexity)]
+fn trainable(varmap: &VarMap) -> Result<(Vec<(String, Var)>, Vec<(String, Var)>), PolicyError> {
     let data = varmap
         .data()
         .lock()
         .map_err(|_| config_err("variables", "poisoned", "a usable variable map"))?;
     let (mut rest, mut backbone) = (Vec::new(), Vec::new());
     for (name, var) in data.iter() {
+        let named = (name.clone(), var.clone());
         match name.strip_prefix("backbone.") {
-            None => rest.push(var.clone()),
-            Some(n) if !is_frozen_norm(n) => backbone.push(var.clone()),
+            None => rest.push(named),
+            Some(n) if !is_frozen_norm(n) => backbone.push(named),
             Some(_) => {}
         }
     }
     Ok((rest, backbone))
+}
+
+/// A detached copy of every variable's value, by name: the average's starting point.
+fn variable_copies(varmap: &VarMap) -> Result<HashMap<String, Tensor>, PolicyError> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| config_err("variables", "poisoned", "a usable variable map"))?;
+    data.iter()
+        .map(|(k, v)| Ok((k.clone(), v.as_tensor().detach().copy()?)))
+        .collect()
 }
 
 /// Whether a backbone tensor (name below `backbone.`) belongs to a FrozenBatchNorm2d: the
@@ -501,14 +591,26 @@ fn is_frozen_norm(name: &str) -> bool {
     }
 }
 
+/// The optimised weights beside the average, when a run keeps one.
+const RAW_WEIGHTS: &str = "raw_model.safetensors";
+
+/// Writes the policy into `out` (the average's weights when `ema` is kept, with the optimised
+/// ones in [`RAW_WEIGHTS`]) and the training state.
 fn save(
     policy: &ActPolicy,
     varmap: &VarMap,
+    ema: Option<&HashMap<String, Tensor>>,
     out: &Path,
     step: usize,
     train: &ActTrainConfig,
 ) -> Result<(), PolicyError> {
-    policy.save(out, varmap)?;
+    match ema {
+        Some(e) => {
+            policy.save_tensors(out, e)?;
+            policy.write_weights(&out.join(RAW_WEIGHTS), &variable_copies(varmap)?)?;
+        }
+        None => policy.save(out, varmap)?,
+    }
     let state = TrainingState {
         step,
         train: train.clone(),
@@ -521,17 +623,43 @@ fn save(
     std::fs::write(&path, text).map_err(|source| PolicyError::Io { path, source })
 }
 
-/// Loads the weights of a previous run in `out` into `varmap`; the step it reached (0 when
-/// there is none).
-fn resume(varmap: &VarMap, out: &Path) -> Result<usize, PolicyError> {
+/// Loads the optimised weights of a previous run in `out` into `varmap` (its
+/// [`RAW_WEIGHTS`] when it kept an average); the step it reached (0 when there is none) and,
+/// when `with_ema` and the run kept an average, that average. A run that kept none starts
+/// one at its resumed weights.
+#[allow(clippy::type_complexity)]
+fn resume(
+    varmap: &VarMap,
+    out: &Path,
+    with_ema: bool,
+) -> Result<(usize, Option<HashMap<String, Tensor>>), PolicyError> {
     let path = out.join(STATE_FILE);
     let Ok(text) = std::fs::read_to_string(&path) else {
-        return Ok(0);
+        return Ok((0, None));
     };
     let state: TrainingState =
         serde_json::from_str(&text).map_err(|source| PolicyError::Json { path, source })?;
-    load_weights(varmap, &out.join(crate::checkpoint::WEIGHTS))?;
-    Ok(state.step)
+    let (weights, raw) = (out.join(crate::checkpoint::WEIGHTS), out.join(RAW_WEIGHTS));
+    if !raw.exists() {
+        load_weights(varmap, &weights)?;
+        return Ok((state.step, None));
+    }
+    load_weights(varmap, &raw)?;
+    if !with_ema {
+        return Ok((state.step, None));
+    }
+    let names = variable_copies(varmap)?;
+    let mut saved = candle_core::safetensors::load(&weights, &Device::Cpu)?;
+    let ema = names
+        .into_keys()
+        .map(|k| {
+            let t = saved.remove(&format!("model.{k}")).ok_or_else(|| {
+                crate::checkpoint::ck(&weights, format!("no `model.{k}` in the average"))
+            })?;
+            Ok((k, t))
+        })
+        .collect::<Result<HashMap<_, _>, PolicyError>>()?;
+    Ok((state.step, Some(ema)))
 }
 
 /// Sets every variable of `varmap` from `model.<name>` in the checkpoint weights at `path`;

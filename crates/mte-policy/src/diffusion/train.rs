@@ -22,7 +22,8 @@ use crate::config::{DiffusionConfig, FeatureType};
 use crate::error::{PolicyError, config_err};
 use crate::model::{DiffusionPolicy, ObsBatch, StatsMap};
 use crate::normalize::Stats;
-use crate::training::{LossTrace, checkpoint_due, clip_gradients, step_rng};
+pub use crate::training::learning_rate;
+use crate::training::{LossTrace, checkpoint_due, clip_gradients, ema_decay, ema_update, step_rng};
 
 /// Training settings (the model's own settings, e.g. learning rate, are in the config).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -140,15 +141,6 @@ pub struct TrainReport {
     pub final_loss: Option<f32>,
     /// Wall time of this invocation (s).
     pub seconds: f64,
-}
-
-/// Learning rate at `step`: linear warm-up to `lr`, then cosine decay to 0 at `total`.
-pub fn learning_rate(lr: f64, warmup: usize, total: usize, step: usize) -> f64 {
-    if step < warmup {
-        return lr * (step + 1) as f64 / warmup as f64;
-    }
-    let progress = (step - warmup) as f64 / (total.saturating_sub(warmup)).max(1) as f64;
-    lr * 0.5 * (1.0 + (std::f64::consts::PI * progress.min(1.0)).cos())
 }
 
 fn windows(data: &TrainData, c: &DiffusionConfig, successful_only: bool) -> Windows {
@@ -568,8 +560,7 @@ impl Stepper<'_> {
         opt.set_learning_rate(lr);
         opt.step(&grads)?;
         if let (Some(max), Some(e)) = (train.ema_max_decay, ema) {
-            let decay = max.min((1.0 + step as f64) / (10.0 + step as f64));
-            ema_update(e, self.vars, decay)?;
+            ema_update(e, self.vars, ema_decay(max, step))?;
         }
         let l = loss.to_scalar::<f32>()?;
         if !l.is_finite() {
@@ -675,22 +666,6 @@ fn start_or_resume(
         None => None,
     };
     Ok((step, ema))
-}
-
-/// `ema <- decay ema + (1 - decay) weights` for the optimised variables.
-fn ema_update(
-    ema: &mut HashMap<String, Tensor>,
-    vars: &[(String, Var)],
-    decay: f64,
-) -> Result<(), PolicyError> {
-    for (k, v) in vars {
-        if let Some(prev) = ema.get_mut(k) {
-            // detach: otherwise every EMA tensor keeps the previous one alive through the
-            // autograd graph, and memory grows by a model copy per step.
-            *prev = ((&*prev * decay)? + (v.as_tensor().detach() * (1.0 - decay))?)?.detach();
-        }
-    }
-    Ok(())
 }
 
 /// What a checkpoint of a training run holds.

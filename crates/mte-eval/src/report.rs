@@ -808,15 +808,7 @@ pub fn build(
         episodes,
         mut notes,
     } = load_records(manifest, lines, opts.mcnemar)?;
-    // Arms of the run, in order of first appearance.
-    let mut all_arms: Vec<String> = Vec::new();
-    for c in &cells {
-        for a in &c.arms {
-            if !all_arms.contains(a) {
-                all_arms.push(a.clone());
-            }
-        }
-    }
+    let all_arms = arms_in_order(&cells);
     let (baseline, robust) = choose_arms(&all_arms, opts)?;
     let corrupted: Vec<usize> = (0..cells.len()).filter(|&i| !cells[i].is_clean()).collect();
     let main = main_rows(&cells, &corrupted, (&baseline, &robust), &mut notes)?;
@@ -828,13 +820,7 @@ pub fn build(
         .filter(|c| c.is_clean())
         .map(|c| focus_table(c, &baseline, &mut notes))
         .collect::<Result<Vec<_>, _>>()?;
-    let (mut brackets, mut distributions, mut overhead) = (Vec::new(), Vec::new(), Vec::new());
-    for arm in &all_arms {
-        let (b, d) = arm_diagnostics(&cells, &corrupted, arm);
-        brackets.extend(b);
-        distributions.extend(d);
-        overhead.extend(arm_overhead(&cells, arm));
-    }
+    let (brackets, distributions, overhead) = diagnostics(&cells, &corrupted, &all_arms);
     let cell_brackets = cell_brackets(&cells, &corrupted, &all_arms);
     let controls = if opts.controls.is_empty() {
         None
@@ -851,14 +837,7 @@ pub fn build(
         .collect::<Result<Vec<_>, _>>()?;
     Ok(Report {
         name: manifest.name.clone(),
-        manifest: ManifestInfo {
-            format: manifest.format.clone(),
-            mte_version: manifest.mte_version.clone(),
-            git_commit: manifest.git_commit.clone(),
-            created_unix_s: manifest.created_unix_s,
-            noise_seed: manifest.noise_seed,
-            machines: manifest.machines.iter().map(|m| m.summary()).collect(),
-        },
+        manifest: ManifestInfo::of(manifest),
         cells: cells.len(),
         corrupted_cells: corrupted.len(),
         episodes,
@@ -879,6 +858,49 @@ pub fn build(
         notes,
         plots,
     })
+}
+
+/// The arms of a run's cells, in order of first appearance.
+fn arms_in_order(cells: &[CellData<'_>]) -> Vec<String> {
+    let mut all: Vec<String> = Vec::new();
+    for a in cells.iter().flat_map(|c| &c.arms) {
+        if !all.contains(a) {
+            all.push(a.clone());
+        }
+    }
+    all
+}
+
+/// Every arm's bracket and distribution diagnostics over the corrupted cells and its
+/// aggregation overhead, arm after arm.
+#[allow(clippy::type_complexity)]
+fn diagnostics(
+    cells: &[CellData<'_>],
+    corrupted: &[usize],
+    arms: &[String],
+) -> (Vec<ArmBrackets>, Vec<Distribution>, Vec<Overhead>) {
+    let (mut brackets, mut distributions, mut overhead) = (Vec::new(), Vec::new(), Vec::new());
+    for arm in arms {
+        let (b, d) = arm_diagnostics(cells, corrupted, arm);
+        brackets.extend(b);
+        distributions.extend(d);
+        overhead.extend(arm_overhead(cells, arm));
+    }
+    (brackets, distributions, overhead)
+}
+
+impl ManifestInfo {
+    /// What a report repeats of the run's manifest.
+    fn of(manifest: &Manifest) -> Self {
+        Self {
+            format: manifest.format.clone(),
+            mte_version: manifest.mte_version.clone(),
+            git_commit: manifest.git_commit.clone(),
+            created_unix_s: manifest.created_unix_s,
+            noise_seed: manifest.noise_seed,
+            machines: manifest.machines.iter().map(|m| m.summary()).collect(),
+        }
+    }
 }
 
 /// The records of a run, by cell, checked; failures; notes on what was left out.

@@ -29,12 +29,7 @@ pub fn generate(cli: &Cli, a: &DataGenerateArgs) -> Result<()> {
         },
     };
     config.validate().context("check the generate flags")?;
-    let mut pool = rayon::ThreadPoolBuilder::new();
-    if let Some(t) = a.threads {
-        anyhow::ensure!(t >= 1, "--threads must be at least 1");
-        pool = pool.num_threads(t);
-    }
-    let pool = pool.build()?;
+    let pool = thread_pool(a.threads)?;
     let bar = Bar::new(!cli.no_progress && !cli.quiet);
     use mte_eval::Reporter as _;
     bar.start("episodes", a.episodes as u64);
@@ -133,41 +128,12 @@ fn generate_bridged(
 /// `mte data takeover`
 pub fn takeover(cli: &Cli, a: &DataTakeoverArgs) -> Result<()> {
     use mte_eval::Reporter as _;
-    use mte_eval::takeover::{TakeoverConfig, generate_takeover};
-    let config = TakeoverConfig {
-        record: GenerateConfig {
-            episodes: a.episodes,
-            seed: a.seed,
-            stream: a.stream.into(),
-            obs: a.obs,
-            image_size: (a.image_size, a.image_size),
-            max_steps: a.max_steps,
-            expert: ExpertConfig {
-                travel_step: a.travel_step,
-                push_step: a.push_step,
-                resume_pushes: a.resume_pushes,
-                ..ExpertConfig::default()
-            },
-        },
-        execution: a.execution.parse().with_context(|| {
-            format!(
-                "--execution {:?}: expected open-loop or an aggregator",
-                a.execution
-            )
-        })?,
-        h: a.stride,
-        switch: a.switch,
-        noise_seed: a.noise_seed,
-    };
+    use mte_eval::takeover::generate_takeover;
+    let config = takeover_config(a)?;
     config.validate().context("check the takeover flags")?;
     let policy = mte_eval::sweep::load_named_policy(&a.checkpoint, &candle_core::Device::Cpu)
         .with_context(|| format!("loading {}", a.checkpoint.display()))?;
-    let mut pool = rayon::ThreadPoolBuilder::new();
-    if let Some(t) = a.threads {
-        anyhow::ensure!(t >= 1, "--threads must be at least 1");
-        pool = pool.num_threads(t);
-    }
-    let pool = pool.build()?;
+    let pool = thread_pool(a.threads)?;
     let bar = Bar::new(!cli.no_progress && !cli.quiet);
     bar.start("episodes", a.episodes as u64);
     let tally = std::sync::Mutex::new((0usize, 0usize, 0.0f64));
@@ -217,4 +183,44 @@ pub fn takeover(cli: &Cli, a: &DataTakeoverArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The rayon pool of `--threads` (all cores when absent).
+fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
+    let mut pool = rayon::ThreadPoolBuilder::new();
+    if let Some(t) = threads {
+        anyhow::ensure!(t >= 1, "--threads must be at least 1");
+        pool = pool.num_threads(t);
+    }
+    Ok(pool.build()?)
+}
+
+/// `mte data takeover`'s flags as the takeover's configuration (not yet validated).
+fn takeover_config(a: &DataTakeoverArgs) -> Result<mte_eval::takeover::TakeoverConfig> {
+    use mte_eval::takeover::TakeoverConfig;
+    Ok(TakeoverConfig {
+        record: GenerateConfig {
+            episodes: a.episodes,
+            seed: a.seed,
+            stream: a.stream.into(),
+            obs: a.obs,
+            image_size: (a.image_size, a.image_size),
+            max_steps: a.max_steps,
+            expert: ExpertConfig {
+                travel_step: a.travel_step,
+                push_step: a.push_step,
+                resume_pushes: a.resume_pushes,
+                ..ExpertConfig::default()
+            },
+        },
+        execution: a.execution.parse().with_context(|| {
+            format!(
+                "--execution {:?}: expected open-loop or an aggregator",
+                a.execution
+            )
+        })?,
+        h: a.stride,
+        switch: a.switch,
+        noise_seed: a.noise_seed,
+    })
 }

@@ -8,7 +8,7 @@ use anyhow::{Context, Result, ensure};
 use mte_sim::PushT;
 use mte_sim::expert::{Expert, ExpertConfig};
 use mte_sim::render::Renderer;
-use mte_sim::rollout::Driver;
+use mte_sim::rollout::{Driver, RolloutOutcome};
 
 use crate::args::{Cli, Format, SimBenchArgs, SimPolicy, SimRenderArgs, SimRolloutArgs};
 use crate::cmd::media::{Gif, write_png};
@@ -68,6 +68,14 @@ pub fn rollout(cli: &Cli, a: &SimRolloutArgs) -> Result<()> {
     use mte_eval::Reporter as _;
     bar.start("episodes", a.episodes as u64);
     let t0 = Instant::now();
+    let out = run_episodes(a, &|| bar.advance(1))?;
+    bar.finish();
+    print_rollouts(cli, a, &out, t0.elapsed().as_secs_f64())
+}
+
+/// The episodes of `mte sim rollout`, the first one drawn into the GIF when one is asked
+/// for; `done()` after each.
+fn run_episodes(a: &SimRolloutArgs, done: &dyn Fn()) -> Result<Vec<RolloutOutcome>> {
     let mut out = Vec::new();
     let mut gif = match &a.gif {
         Some(p) => Some(Gif::create(p, a.gif_size, a.gif_size, 10)?),
@@ -102,44 +110,43 @@ pub fn rollout(cli: &Cli, a: &SimRolloutArgs) -> Result<()> {
             a.max_steps,
             frame,
         )?);
-        bar.advance(1);
+        done();
     }
-    bar.finish();
-    drop(gif);
+    Ok(out)
+}
+
+/// Prints the outcomes of `mte sim rollout` (each episode in text when there are at most 10
+/// or with `-v`), their success rate and mean max coverage.
+fn print_rollouts(cli: &Cli, a: &SimRolloutArgs, out: &[RolloutOutcome], secs: f64) -> Result<()> {
     let n = out.len() as f64;
     let successes = out.iter().filter(|o| o.success).count();
     let mean_max = out.iter().map(|o| o.max_coverage).sum::<f64>() / n;
-    let secs = t0.elapsed().as_secs_f64();
     let mut stdout = std::io::stdout().lock();
-    match cli.format {
-        Format::Json => writeln!(
-            stdout,
-            "{}",
-            serde_json::json!({ "episodes": out, "success_rate": successes as f64 / n, "mean_max_coverage": mean_max, "seconds": secs })
-        )?,
-        Format::Text => {
-            if !cli.quiet && (cli.verbose > 0 || out.len() <= 10) {
-                for o in &out {
-                    writeln!(
-                        stdout,
-                        "seed {:>6}: {:7} after {:3} steps, max coverage {:.3}",
-                        o.seed,
-                        if o.success { "success" } else { "failure" },
-                        o.steps,
-                        o.max_coverage
-                    )?;
-                }
-            }
+    if cli.format == Format::Json {
+        let json = serde_json::json!({ "episodes": out, "success_rate": successes as f64 / n, "mean_max_coverage": mean_max, "seconds": secs });
+        writeln!(stdout, "{json}")?;
+        return Ok(());
+    }
+    if !cli.quiet && (cli.verbose > 0 || out.len() <= 10) {
+        for o in out {
             writeln!(
                 stdout,
-                "{successes}/{} successful ({:.0}%), mean max coverage {mean_max:.3}, {secs:.1} s",
-                out.len(),
-                100.0 * successes as f64 / n
+                "seed {:>6}: {:7} after {:3} steps, max coverage {:.3}",
+                o.seed,
+                if o.success { "success" } else { "failure" },
+                o.steps,
+                o.max_coverage
             )?;
-            if let Some(p) = &a.gif {
-                writeln!(stdout, "wrote {}", p.display())?;
-            }
         }
+    }
+    writeln!(
+        stdout,
+        "{successes}/{} successful ({:.0}%), mean max coverage {mean_max:.3}, {secs:.1} s",
+        out.len(),
+        100.0 * successes as f64 / n
+    )?;
+    if let Some(p) = &a.gif {
+        writeln!(stdout, "wrote {}", p.display())?;
     }
     Ok(())
 }

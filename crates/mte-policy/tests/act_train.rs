@@ -283,6 +283,35 @@ fn an_averaged_run_keeps_its_raw_weights_and_resumes_its_average() {
     }
     assert!(worst < 1e-5, "the resumed average is off by {worst}");
     assert_ne!(raw21, raw20, "the resumed run took a step");
+
+    // Resumed without the average, the run goes on from its raw weights and leaves no stale
+    // copy of them behind.
+    let plain_more = ActTrainConfig { steps: 22, ..base };
+    train(&data(), tiny(), &plain_more, ema.path(), &mut |_, _, _| {}).expect("no average");
+    assert!(!ema.path().join("raw_model.safetensors").exists());
+    let raw22 = tensors(&ema.path().join("model.safetensors"));
+    assert_ne!(raw22, raw21, "one more step from the raw weights");
+    // AdamW's first step after a resume moves no weight by more than the learning rate
+    // (1e-3), so a start from the average (which lags the weights by more) would show.
+    let largest = |x: &std::collections::BTreeMap<String, Vec<f32>>| {
+        let mut m = 0f32;
+        for (k, w) in x {
+            for (&a, &b) in w.iter().zip(&raw21[k]) {
+                m = m.max((a - b).abs());
+            }
+        }
+        m
+    };
+    assert!(
+        largest(&avg21) > 2e-3,
+        "the average lags: {}",
+        largest(&avg21)
+    );
+    let moved = largest(&raw22);
+    assert!(
+        moved <= 1.01e-3,
+        "resumed from the raw weights: moved {moved}"
+    );
 }
 
 /// The cosine schedule changes the run (the learning rate is applied, not just recorded);

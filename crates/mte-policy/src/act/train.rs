@@ -609,7 +609,16 @@ fn save(
             policy.save_tensors(out, e)?;
             policy.write_weights(&out.join(RAW_WEIGHTS), &variable_copies(varmap)?)?;
         }
-        None => policy.save(out, varmap)?,
+        None => {
+            policy.save(out, varmap)?;
+            // A run resumed without the average it kept: the policy file now holds the raw
+            // weights, and a stale copy beside it would be what the next resume loads.
+            let raw = out.join(RAW_WEIGHTS);
+            if raw.exists() {
+                std::fs::remove_file(&raw)
+                    .map_err(|source| PolicyError::Io { path: raw, source })?;
+            }
+        }
     }
     let state = TrainingState {
         step,

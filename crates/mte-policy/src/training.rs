@@ -65,6 +65,16 @@ pub(crate) fn ema_decay(max: f64, step: usize) -> f64 {
     max.min((1.0 + step as f64) / (10.0 + step as f64))
 }
 
+/// Detached copies of `vars`' values by name: an average's starting point (a plain clone would
+/// share the variables' storage, which the optimiser overwrites in place).
+pub(crate) fn weight_copies(
+    vars: &[(String, Var)],
+) -> Result<HashMap<String, Tensor>, PolicyError> {
+    vars.iter()
+        .map(|(k, v)| Ok((k.clone(), v.as_tensor().detach().copy()?)))
+        .collect()
+}
+
 /// `ema <- decay ema + (1 - decay) weights` for the named variables `vars` (names that `ema`
 /// lacks are skipped).
 pub(crate) fn ema_update(

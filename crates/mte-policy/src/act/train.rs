@@ -27,9 +27,10 @@ use super::config::ActConfig;
 use super::model::{Dropout, VaeInput};
 use super::policy::{ActPolicy, ObsTensors};
 use crate::error::{PolicyError, config_err};
-use crate::train::TrainData;
+use crate::train::{TrainData, sorted_vars};
 use crate::training::{
     LossTrace, checkpoint_due, clip_gradients, ema_decay, ema_update, learning_rate, step_rng,
+    weight_copies,
 };
 
 /// ACT training settings.
@@ -366,7 +367,7 @@ pub fn train(
     // The average starts at the weights training starts from (or the resumed average).
     let mut ema = match (train.ema_max_decay, resumed_ema) {
         (Some(_), Some(e)) => Some(e),
-        (Some(_), None) => Some(variable_copies(&varmap)?),
+        (Some(_), None) => Some(weight_copies(&sorted_vars(&varmap, |_| true)?)?),
         (None, _) => None,
     };
     let mut opt = Optimisers::new(policy.config(), vars, backbone)?;
@@ -569,17 +570,6 @@ fn trainable(varmap: &VarMap) -> Result<(Vec<(String, Var)>, Vec<(String, Var)>)
     Ok((rest, backbone))
 }
 
-/// A detached copy of every variable's value, by name: the average's starting point.
-fn variable_copies(varmap: &VarMap) -> Result<HashMap<String, Tensor>, PolicyError> {
-    let data = varmap
-        .data()
-        .lock()
-        .map_err(|_| config_err("variables", "poisoned", "a usable variable map"))?;
-    data.iter()
-        .map(|(k, v)| Ok((k.clone(), v.as_tensor().detach().copy()?)))
-        .collect()
-}
-
 /// Whether a backbone tensor (name below `backbone.`) belongs to a FrozenBatchNorm2d: the
 /// stem's `bn1`, the blocks' `bn1` and `bn2`, the shortcuts' `downsample.1`.
 fn is_frozen_norm(name: &str) -> bool {
@@ -607,7 +597,11 @@ fn save(
     match ema {
         Some(e) => {
             policy.save_tensors(out, e)?;
-            policy.write_weights(&out.join(RAW_WEIGHTS), &variable_copies(varmap)?)?;
+            let raw = sorted_vars(varmap, |_| true)?
+                .into_iter()
+                .map(|(k, v)| (k, v.as_tensor().clone()))
+                .collect();
+            policy.write_weights(&out.join(RAW_WEIGHTS), &raw)?;
         }
         None => {
             policy.save(out, varmap)?;
@@ -657,11 +651,10 @@ fn resume(
     if !with_ema {
         return Ok((state.step, None));
     }
-    let names = variable_copies(varmap)?;
     let mut saved = candle_core::safetensors::load(&weights, &Device::Cpu)?;
-    let ema = names
-        .into_keys()
-        .map(|k| {
+    let ema = sorted_vars(varmap, |_| true)?
+        .into_iter()
+        .map(|(k, _)| {
             let t = saved.remove(&format!("model.{k}")).ok_or_else(|| {
                 crate::checkpoint::ck(&weights, format!("no `model.{k}` in the average"))
             })?;

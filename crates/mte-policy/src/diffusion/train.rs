@@ -23,7 +23,9 @@ use crate::error::{PolicyError, config_err};
 use crate::model::{DiffusionPolicy, ObsBatch, StatsMap};
 use crate::normalize::Stats;
 pub use crate::training::learning_rate;
-use crate::training::{LossTrace, checkpoint_due, clip_gradients, ema_decay, ema_update, step_rng};
+use crate::training::{
+    LossTrace, checkpoint_due, clip_gradients, ema_decay, ema_update, step_rng, weight_copies,
+};
 
 /// Training settings (the model's own settings, e.g. learning rate, are in the config).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -632,12 +634,7 @@ fn start_or_resume(
             load_init_widened(varmap, init, widen, device)?;
         }
         let ema = match train.ema_max_decay {
-            Some(_) => Some(
-                sorted_vars(varmap, |_| true)?
-                    .iter()
-                    .map(|(k, v)| Ok((k.clone(), v.as_tensor().detach().copy()?)))
-                    .collect::<Result<HashMap<_, _>, PolicyError>>()?,
-            ),
+            Some(_) => Some(weight_copies(&sorted_vars(varmap, |_| true)?)?),
             None => None,
         };
         return Ok((0, ema));

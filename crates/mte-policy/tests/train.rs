@@ -126,6 +126,59 @@ fn training_is_deterministic_loads_and_resumes() {
     assert_eq!((r.steps_run, r.step, r.final_loss), (0, 50, None));
 }
 
+/// The resume is exact: 20 steps, then 10 more from the directory, give the weights and the
+/// average of 30 steps in one go, bit for bit (AdamW's moments are restored). The warm-up is
+/// longer than either run, so the learning rate at a step does not depend on the run's length.
+#[test]
+fn a_resumed_run_equals_an_uninterrupted_one() {
+    let config = config()
+        .with_overrides(&serde_json::json!({ "scheduler_warmup_steps": 100 }))
+        .expect("valid");
+    let averaged = |steps| TrainConfig {
+        ema_max_decay: Some(0.9),
+        ..tc(steps)
+    };
+    let tmp = tempfile::tempdir().expect("tmp");
+    let (resumed, straight) = (tmp.path().join("resumed"), tmp.path().join("straight"));
+    let quiet = |_: usize, _: f32, _: f64| {};
+    train(
+        &config,
+        &averaged(20),
+        &data(),
+        &resumed,
+        &Device::Cpu,
+        &quiet,
+    )
+    .expect("first part");
+    assert!(resumed.join("optimizer_state.safetensors").exists());
+    let r = train(
+        &config,
+        &averaged(30),
+        &data(),
+        &resumed,
+        &Device::Cpu,
+        &quiet,
+    )
+    .expect("resume");
+    assert_eq!((r.steps_run, r.step), (10, 30));
+    train(
+        &config,
+        &averaged(30),
+        &data(),
+        &straight,
+        &Device::Cpu,
+        &quiet,
+    )
+    .expect("straight");
+    for file in ["model.safetensors", "raw_model.safetensors"] {
+        let read = |d: &std::path::Path| std::fs::read(d.join(file)).expect("weights");
+        assert!(
+            read(&resumed) == read(&straight),
+            "{file} differs after the resume"
+        );
+    }
+}
+
 #[test]
 fn bad_train_config_names_the_field() {
     let e = TrainConfig {

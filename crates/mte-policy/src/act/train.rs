@@ -3,8 +3,10 @@
 //! next `chunk_size` actions (actions past an episode's end repeat its last action and are
 //! marked as padding, so the L1 term ignores them and the CVAE encoder masks them), the
 //! CVAE's noise and dropout masks drawn from a stream keyed by `(seed, step)`. A run
-//! checkpoints every `checkpoint_every` steps and resumes from its output directory
-//! (AdamW's moments restart, as for Diffusion Policy).
+//! checkpoints every `checkpoint_every` steps and resumes from its output directory exactly:
+//! the weights, the average and AdamW's moments (`optimizer_state.safetensors`) are restored
+//! and every draw is keyed by the step, so a resumed run matches an uninterrupted one bit for
+//! bit on the same machine (runs saved before the moments were kept resume with fresh ones).
 //!
 //! Two parts of Diffusion Policy's recipe are options (LeRobot's ACT uses neither): a
 //! warm-up + cosine learning rate ([`LrSchedule::Cosine`]) and an exponential moving average
@@ -17,7 +19,7 @@ use std::path::{Path, PathBuf};
 
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Tensor, Var};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use candle_nn::VarMap;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -29,8 +31,8 @@ use super::policy::{ActPolicy, ObsTensors};
 use crate::error::{PolicyError, config_err};
 use crate::train::{TrainData, sorted_vars};
 use crate::training::{
-    LossTrace, checkpoint_due, clip_gradients, ema_decay, ema_update, learning_rate, step_rng,
-    weight_copies,
+    AdamW, LossTrace, ParamsAdamW, checkpoint_due, clip_gradients, ema_decay, ema_update,
+    learning_rate, restore_optimizers, save_optimizers, step_rng, weight_copies,
 };
 
 /// ACT training settings.
@@ -47,7 +49,7 @@ pub struct ActTrainConfig {
     /// An ACT checkpoint's `model.safetensors` (same configuration) whose weights replace
     /// the seeded initialisation: training goes on from a bundled policy whose run directory
     /// is gone. Every variable must be in it (`model.<name>`, same shape). AdamW's moments
-    /// start afresh, as on resuming. Ignored when resuming.
+    /// start afresh. Ignored when resuming.
     #[serde(default)]
     pub init: Option<PathBuf>,
     /// A Diffusion Policy image checkpoint's `model.safetensors` whose encoder backbone
@@ -371,6 +373,9 @@ pub fn train(
         (None, _) => None,
     };
     let mut opt = Optimisers::new(policy.config(), vars, backbone)?;
+    if step > 0 {
+        opt.restore(out, step)?;
+    }
     let stepper = Stepper {
         policy: &policy,
         data,
@@ -392,6 +397,7 @@ pub fn train(
         klds.push(kld);
         progress(step, l1, kld);
         if checkpoint_due(step, train.checkpoint_every, train.steps) {
+            opt.save(out, step)?;
             save(&policy, &varmap, ema.as_ref(), out, step, train)?;
         }
     }
@@ -431,7 +437,7 @@ impl Optimisers {
         vars: Vec<(String, Var)>,
         backbone: Vec<(String, Var)>,
     ) -> Result<Self, PolicyError> {
-        let adamw = |vars: Vec<Var>, lr: f64| {
+        let adamw = |vars: &[(String, Var)], lr: f64| {
             let params = ParamsAdamW {
                 lr,
                 weight_decay: config.optimizer_weight_decay,
@@ -440,14 +446,28 @@ impl Optimisers {
             AdamW::new(vars, params)
         };
         let all: Vec<(String, Var)> = vars.iter().chain(&backbone).cloned().collect();
-        let unnamed = |named: Vec<(String, Var)>| named.into_iter().map(|(_, v)| v).collect();
         let lrs = (config.optimizer_lr, config.optimizer_lr_backbone);
         Ok(Self {
-            main: adamw(unnamed(vars), lrs.0)?,
-            backbone: adamw(unnamed(backbone), lrs.1)?,
+            main: adamw(&vars, lrs.0)?,
+            backbone: adamw(&backbone, lrs.1)?,
             lrs,
             all,
         })
+    }
+
+    /// Writes both groups' moments beside the weights of step `step` ([`save_optimizers`]).
+    fn save(&self, out: &Path, step: usize) -> Result<(), PolicyError> {
+        save_optimizers(
+            out,
+            step,
+            &[("main.", &self.main), ("backbone.", &self.backbone)],
+        )
+    }
+
+    /// Restores both groups' moments saved at step `step`, if the run saved them.
+    fn restore(&mut self, out: &Path, step: usize) -> Result<bool, PolicyError> {
+        let groups = &mut [("main.", &mut self.main), ("backbone.", &mut self.backbone)];
+        restore_optimizers(out, step, groups)
     }
 
     /// Sets both groups' learning rates to `factor` times the config's.

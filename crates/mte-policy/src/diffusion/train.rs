@@ -3,16 +3,16 @@
 //! random crops for images, all randomness from one seeded ChaCha stream (windows, noise,
 //! timesteps, crops), periodic checkpoints and resume.
 //!
-//! Resume restores the weights, the EMA and the step, and re-seeds the data stream from
-//! `(seed, step)`; AdamW's moment estimates are not saved (candle does not expose them), so a
-//! resumed run re-estimates them over its first few hundred steps. This is stated in the
-//! checkpoint's `training_state.json`.
+//! Resume restores the weights, the EMA, AdamW's moment estimates (`optimizer_state.safetensors`,
+//! in the run directory only, not in `checkpoints/<step>/`) and the step, and re-seeds the data
+//! stream from `(seed, step)`: a resumed run matches an uninterrupted one bit for bit on the
+//! same machine. Runs saved before the moments were kept resume with fresh ones.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor, Var};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use candle_nn::VarMap;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -24,7 +24,8 @@ use crate::model::{DiffusionPolicy, ObsBatch, StatsMap};
 use crate::normalize::Stats;
 pub use crate::training::learning_rate;
 use crate::training::{
-    LossTrace, checkpoint_due, clip_gradients, ema_decay, ema_update, step_rng, weight_copies,
+    AdamW, LossTrace, ParamsAdamW, checkpoint_due, clip_gradients, ema_decay, ema_update,
+    restore_optimizers, save_optimizers, step_rng, weight_copies,
 };
 
 /// Training settings (the model's own settings, e.g. learning rate, are in the config).
@@ -470,6 +471,9 @@ pub fn train(
         train,
     };
     let mut opt = adamw(config, &vars)?;
+    if step > 0 {
+        restore_optimizers(out, step, &mut [("main.", &mut opt)])?;
+    }
     let (steps_at_start, mut trace) = (step, LossTrace::default());
     while step < train.steps {
         let (l, lr) = stepper.step(&mut opt, ema.as_mut(), step)?;
@@ -484,6 +488,7 @@ pub fn train(
                 all_vars: &all_vars,
                 ema: ema.as_ref(),
             };
+            save_optimizers(out, step, &[("main.", &opt)])?;
             saved.write(out, step)?;
         }
     }
@@ -519,10 +524,7 @@ fn adamw(config: &DiffusionConfig, vars: &[(String, Var)]) -> Result<AdamW, Poli
         eps: config.optimizer_eps,
         weight_decay: config.optimizer_weight_decay,
     };
-    Ok(AdamW::new(
-        vars.iter().map(|(_, v)| v.clone()).collect(),
-        params,
-    )?)
+    AdamW::new(vars, params)
 }
 
 /// What one optimisation step reads and does not change.
@@ -695,7 +697,7 @@ impl Saved<'_> {
                 "step": step,
                 "train": self.train,
                 "ema": self.train.ema_max_decay.is_some(),
-                "note": "model.safetensors holds the EMA weights (the policy); raw_model.safetensors the optimised ones. AdamW moments are not saved: a resumed run re-estimates them.",
+                "note": "model.safetensors holds the EMA weights (the policy); raw_model.safetensors the optimised ones. AdamW's moments are in optimizer_state.safetensors (the run directory only).",
             });
             let p = d.join("training_state.json");
             std::fs::write(&p, serde_json::to_string_pretty(&st).unwrap_or_default()).map_err(

@@ -269,10 +269,11 @@ pub(crate) fn restore_optimizers(
         .transpose()?
         .and_then(|v| v.first().copied());
     if at != Some(step as i64) {
+        let at = at.map_or_else(|| "unknown".to_string(), |s| s.to_string());
         return Err(PolicyError::Checkpoint {
             path,
             reason: format!(
-                "optimiser state of step {at:?}, the run's weights are of step {step}; delete it to resume with fresh moments"
+                "optimiser state of step {at}, the run's weights are of step {step}; delete it to resume with fresh moments"
             ),
         });
     }

@@ -220,7 +220,7 @@ fn trains_checkpoints_loads_and_resumes() {
     };
     let e = train(&data(), tiny(), &later, dir.path(), &mut |_, _, _| {}).expect_err("stale");
     assert!(
-        e.to_string().contains("step Some(60)") && e.to_string().contains("step 70"),
+        e.to_string().contains("state of step 60") && e.to_string().contains("step 70"),
         "{e}"
     );
 }

@@ -10,6 +10,7 @@ use candle_core::{Tensor, Var};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use crate::checkpoint::ck;
 use crate::error::PolicyError;
 
 /// The random stream of optimisation step `step` of a run seeded with `seed`: keyed by the
@@ -193,30 +194,27 @@ impl AdamW {
         saved: &HashMap<String, Tensor>,
         path: &std::path::Path,
     ) -> Result<(), PolicyError> {
-        let get = |key: String| {
-            saved.get(&key).ok_or_else(|| PolicyError::Checkpoint {
-                path: path.to_path_buf(),
-                reason: format!(
+        let missing = |key: &str| {
+            ck(
+                path,
+                format!(
                     "no `{key}` in the optimiser state (was the run started with other \
                      trainable variables? delete the file to resume with fresh moments)"
                 ),
-            })
+            )
         };
-        let step = get(format!("{prefix}step"))?.to_vec1::<i64>()?;
-        self.step_t = step.first().copied().unwrap_or(0).max(0) as usize;
+        let step_key = format!("{prefix}step");
+        self.step_t = stored_count(saved, &step_key, path)?.ok_or_else(|| missing(&step_key))?;
         for s in &self.slots {
             for (moment, var) in [("m", &s.m), ("v", &s.v)] {
                 let key = format!("{prefix}{moment}.{}", s.name);
-                let t = get(key.clone())?;
+                let t = saved.get(&key).ok_or_else(|| missing(&key))?;
                 if t.dims() != var.dims() {
-                    return Err(PolicyError::Checkpoint {
-                        path: path.to_path_buf(),
-                        reason: format!(
-                            "`{key}` has shape {:?}, the variable {:?}",
-                            t.dims(),
-                            var.dims()
-                        ),
-                    });
+                    let (saved, wanted) = (t.dims(), var.dims());
+                    return Err(ck(
+                        path,
+                        format!("`{key}` has shape {saved:?}, the variable {wanted:?}"),
+                    ));
                 }
                 var.set(&t.to_dtype(var.dtype())?.to_device(var.device())?)?;
             }
@@ -251,36 +249,51 @@ pub(crate) fn save_optimizers(
 }
 
 /// Restores the optimisers from `dir/`[`OPTIMIZER_STATE`] if the file exists (runs saved
-/// before it existed resume with fresh moments: returns `false`); a file written at a step
-/// other than the run's `step` is an error (it would pair moments with the wrong weights).
+/// before it existed resume with fresh moments); a file written at a step other than the
+/// run's `step` is an error (it would pair moments with the wrong weights).
 pub(crate) fn restore_optimizers(
     dir: &std::path::Path,
     step: usize,
     groups: &mut [(&str, &mut AdamW)],
-) -> Result<bool, PolicyError> {
+) -> Result<(), PolicyError> {
     let path = dir.join(OPTIMIZER_STATE);
     if !path.exists() {
-        return Ok(false);
+        return Ok(());
     }
     let saved = candle_core::safetensors::load(&path, &candle_core::Device::Cpu)?;
-    let at = saved
-        .get("run.step")
-        .map(|t| t.to_vec1::<i64>())
-        .transpose()?
-        .and_then(|v| v.first().copied());
-    if at != Some(step as i64) {
+    let at = stored_count(&saved, "run.step", &path)?;
+    if at != Some(step) {
         let at = at.map_or_else(|| "unknown".to_string(), |s| s.to_string());
-        return Err(PolicyError::Checkpoint {
-            path,
-            reason: format!(
+        return Err(ck(
+            &path,
+            format!(
                 "optimiser state of step {at}, the run's weights are of step {step}; delete it to resume with fresh moments"
             ),
-        });
+        ));
     }
     for (prefix, opt) in groups.iter_mut() {
         opt.restore(prefix, &saved, &path)?;
     }
-    Ok(true)
+    Ok(())
+}
+
+/// The count (a step) stored under `key` in an optimiser state, `None` when absent; anything
+/// but one value ≥ 0 is an error naming what is there.
+fn stored_count(
+    saved: &HashMap<String, Tensor>,
+    key: &str,
+    path: &std::path::Path,
+) -> Result<Option<usize>, PolicyError> {
+    let Some(t) = saved.get(key) else {
+        return Ok(None);
+    };
+    match t.flatten_all()?.to_vec1::<i64>()?.as_slice() {
+        [n] if *n >= 0 => Ok(Some(*n as usize)),
+        other => Err(ck(
+            path,
+            format!("`{key}` holds {other:?}, expected one step count ≥ 0"),
+        )),
+    }
 }
 
 /// The losses of a run: the first 50 and the last 100 steps.

@@ -465,7 +465,7 @@ impl Optimisers {
     }
 
     /// Restores both groups' moments saved at step `step`, if the run saved them.
-    fn restore(&mut self, out: &Path, step: usize) -> Result<bool, PolicyError> {
+    fn restore(&mut self, out: &Path, step: usize) -> Result<(), PolicyError> {
         let groups = &mut [("main.", &mut self.main), ("backbone.", &mut self.backbone)];
         restore_optimizers(out, step, groups)
     }

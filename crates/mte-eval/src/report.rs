@@ -2958,6 +2958,98 @@ mod tests {
         );
     }
 
+    /// PGD at two balls on one policy: each ball is its own budget curve (iterations are a
+    /// budget only at a fixed radius and step), so the eps 0.03 cells do not land on the eps
+    /// 0.1 curve's iteration axis; the random-point control joins its radius; Figure 1 draws
+    /// both curves.
+    #[test]
+    fn recovered_plots_split_pgd_cells_by_ball() {
+        use mte_policy::PgdConfig;
+        let mut m = manifest();
+        let pgd = |eps: f64, iterations: usize| CorruptionSpec {
+            fault: Fault::Query(crate::corruption::QueryAttack::Pgd(PgdConfig {
+                eps,
+                step: eps / 16.0,
+                iterations,
+                random_start: iterations == 0,
+                ..PgdConfig::default()
+            })),
+            schedule: Schedule::Burst {
+                q: 2,
+                phase: 0,
+                period: None,
+            },
+        };
+        m.cells[1] = cell("a-10", pgd(0.1, 10));
+        m.cells[2] = cell("a-50", pgd(0.1, 50));
+        m.cells.push(cell("b-10", pgd(0.03, 10)));
+        m.cells.push(cell("b-50", pgd(0.03, 50)));
+        m.cells.push(cell("a-0", pgd(0.1, 0)));
+        let mut out: Vec<Line> = Vec::new();
+        for l in lines().into_iter().filter(|l| !matches!(l, Line::Error(_))) {
+            if let Line::Episode(e) = &l {
+                let ids: &[&str] = match e.cell.as_str() {
+                    Q1 => &["a-10", "b-10"],
+                    Q2 => &["a-50", "b-50"],
+                    CLEAN => &[CLEAN, "a-0"],
+                    _ => &[],
+                };
+                for id in ids {
+                    let mut e = e.clone();
+                    e.cell = (*id).into();
+                    out.push(Line::Episode(e));
+                }
+                if !ids.is_empty() {
+                    continue;
+                }
+            }
+            out.push(l);
+        }
+        let r = build(&m, &out, &ReportOptions::default()).unwrap();
+        let recovered: Vec<&Plot> = r
+            .plots
+            .iter()
+            .filter(|p| p.name.starts_with("recovered-"))
+            .collect();
+        let names: Vec<&str> = recovered.iter().map(|p| p.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "recovered-pusht_keypoints-pgd-eps0.1-step0.00625-h2",
+                "recovered-pusht_keypoints-pgd-eps0.03-step0.001875-h2"
+            ]
+        );
+        let xs = |p: &Plot| {
+            p.spec.series[0]
+                .points
+                .iter()
+                .map(|q| q.x)
+                .collect::<Vec<_>>()
+        };
+        // Each ball on the iteration axis, one point per budget (the 0.1 ball's control has
+        // no point: it holds the clean records).
+        for p in &recovered {
+            assert_eq!(p.spec.x_label, "PGD iterations");
+            assert_eq!(xs(p), [10.0, 50.0], "{}", p.name);
+        }
+        let y = |id: &str| row(&r, id).recovered.coverage.unwrap();
+        assert_eq!(recovered[0].spec.series[0].points[1].y, y("a-50"));
+        assert_eq!(recovered[1].spec.series[0].points[1].y, y("b-50"));
+        // Figure 1 has both budget curves, each named with its ball.
+        let fig = r
+            .plots
+            .iter()
+            .find(|p| p.name.starts_with("figure-1"))
+            .expect("figure 1");
+        let labels: Vec<&str> = fig.spec.series.iter().map(|s| s.label.as_str()).collect();
+        for ball in ["eps 0.1, step 0.00625", "eps 0.03, step 0.001875"] {
+            assert!(
+                labels.iter().any(|l| l.contains(ball)),
+                "{ball}: {labels:?}"
+            );
+        }
+    }
+
     /// Two attack kinds with budgets on one policy: Figure 1 puts both curves on one axis of
     /// effort relative to each curve's smallest budget, with the values of their own plots.
     #[test]

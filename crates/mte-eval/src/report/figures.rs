@@ -2,7 +2,7 @@
 //! the recovered fraction against the attack budget) and their series. `plot` draws them.
 
 use super::*;
-use crate::corruption::Schedule;
+use crate::corruption::{Fault, QueryAttack, Schedule};
 use crate::label::{phase_suffix, span_suffix};
 
 /// Specs of every plot: coverage and success against `q`, recovered fraction against the
@@ -228,13 +228,14 @@ fn q_point(cell: &CellData<'_>, arm: &str, x: f64) -> Result<Option<(Point, Poin
 }
 
 /// Plots (b): the recovered fraction against the attack budget (or q), per (policy, fault
-/// kind, h, span, burst phase); only cells whose denominator is significantly above zero.
+/// kind, h, span, burst phase) and, for PGD, per ball ([`pgd_curves`]); only cells whose
+/// denominator is significantly above zero.
 fn recovered_plots(
     ctx: &RecoveredCtx<'_, '_>,
     corrupted: &[usize],
     taken: &mut HashSet<String>,
 ) -> Result<Vec<PlotSpec>, ReportError> {
-    let (cells, baseline) = (ctx.cells, ctx.baseline);
+    let cells = ctx.cells;
     let groups = group_by(corrupted, |ci| {
         let s = cells[ci].spec;
         (
@@ -247,64 +248,162 @@ fn recovered_plots(
     });
     let (mut specs, mut curves) = (Vec::new(), Vec::new());
     for ((policy, tag, h, span, phase), members) in &groups {
-        let kind = format!("{tag}{}", phase_title(*phase));
-        let budgeted: Vec<usize> = members
-            .iter()
-            .copied()
-            .filter(|&ci| cells[ci].spec.budget().is_some())
-            .collect();
-        let by_budget = differ_in_budget(ctx, &budgeted);
-        let used = if by_budget { &budgeted } else { members };
-        let series = recovered_series(ctx, policy, used, by_budget);
-        if series.is_empty() {
-            continue;
+        for (ball, cells_of_curve) in pgd_curves(cells, members) {
+            let group = PlotGroup {
+                policy,
+                tag,
+                ball,
+                h: *h,
+                span: *span,
+                phase: *phase,
+            };
+            specs.extend(recovered_plot(
+                ctx,
+                &group,
+                &cells_of_curve,
+                taken,
+                &mut curves,
+            ));
         }
-        // The budgets that have a point (a control at budget 0 has none: its denominator is
-        // not significant, or it would be an attack).
-        let xs: Vec<f64> = series
-            .iter()
-            .flat_map(|s| s.points.iter().map(|p| p.x))
-            .collect();
-        let base = xs
-            .iter()
-            .copied()
-            .filter(|&x| x > 0.0)
-            .fold(f64::INFINITY, f64::min);
-        if by_budget && base.is_finite() {
-            curves.push(Curve {
-                policy: policy.clone(),
-                kind: format!("{kind}, h = {h}{}", span_title(*span)),
-                base,
-                series: series.clone(),
-            });
-        }
-        let label = policy_label(policy);
-        let stem = format!(
-            "{label}-{tag}{}-h{h}{}",
-            phase_suffix(*phase),
-            span_suffix(*span)
-        );
-        specs.push(PlotSpec {
-            name: unique(taken, format!("recovered-{}", slug(&stem))),
-            title: format!(
-                "Recovered fraction vs {baseline}, {label}: {kind}, h = {h}{}",
-                span_title(*span)
-            ),
-            x_label: if by_budget {
-                cells[used[0]].spec.corruption.fault.budget_axis().into()
-            } else {
-                Q_AXIS.into()
-            },
-            y_label: "recovered fraction (± paired jackknife SE)".into(),
-            integer_x: !by_budget,
-            log_x: by_budget && spans_decades(&xs),
-            y_include: (0.0, 1.0),
-            y_refs: vec![0.0, 1.0],
-            series,
+    }
+    specs.extend(figure_ones(ctx.baseline, &curves, taken));
+    Ok(specs)
+}
+
+/// What one recovered-fraction plot holds fixed: its policy, fault kind, PGD ball (None for
+/// other faults, or where a group has one ball), stride, span and burst phase.
+struct PlotGroup<'a> {
+    policy: &'a str,
+    tag: &'a str,
+    ball: Option<Ball>,
+    h: usize,
+    span: Option<usize>,
+    phase: usize,
+}
+
+/// A PGD curve's fixed attack: the L-infinity radius and the sign step (observation units).
+#[derive(Clone, Copy)]
+struct Ball {
+    eps: f64,
+    step: f64,
+}
+
+/// The `members` of one plot group split by PGD ball: iterated PGD cells by (eps, step,
+/// diffusion samples), each curve with the random-point controls (0 iterations) of its radius
+/// and samples. One curve without a ball where the iterated cells share one (and for every
+/// other fault): PGD iterations are a budget only at a fixed radius and step.
+fn pgd_curves(cells: &[CellData<'_>], members: &[usize]) -> Vec<(Option<Ball>, Vec<usize>)> {
+    let pgd = |ci: usize| match &cells[ci].spec.corruption.fault {
+        Fault::Query(QueryAttack::Pgd(c)) => Some(c),
+        _ => None,
+    };
+    let iterated: Vec<usize> = members
+        .iter()
+        .copied()
+        .filter(|&ci| pgd(ci).is_some_and(|c| c.iterations > 0))
+        .collect();
+    let balls = group_by(&iterated, |ci| {
+        pgd(ci).map(|c| (c.eps.to_bits(), c.step.to_bits(), c.samples))
+    });
+    if balls.len() <= 1 {
+        return vec![(None, members.to_vec())];
+    }
+    balls
+        .into_iter()
+        .filter_map(|(key, mut v)| {
+            let (eps, step, samples) = key?;
+            v.extend(members.iter().copied().filter(|&ci| {
+                pgd(ci).is_some_and(|c| {
+                    c.iterations == 0 && c.eps.to_bits() == eps && c.samples == samples
+                })
+            }));
+            v.sort_unstable();
+            let (eps, step) = (f64::from_bits(eps), f64::from_bits(step));
+            Some((Some(Ball { eps, step }), v))
+        })
+        .collect()
+}
+
+/// One recovered-fraction plot of `group` over the cells `members` (None where no cell has a
+/// point), its budget curve pushed onto `curves` for Figure 1 where it has one.
+fn recovered_plot(
+    ctx: &RecoveredCtx<'_, '_>,
+    group: &PlotGroup<'_>,
+    members: &[usize],
+    taken: &mut HashSet<String>,
+    curves: &mut Vec<Curve>,
+) -> Option<PlotSpec> {
+    let PlotGroup {
+        policy,
+        tag,
+        ball,
+        h,
+        span,
+        phase,
+    } = *group;
+    let cells = ctx.cells;
+    let (ball_title, ball_suffix) = ball.map_or_else(Default::default, |b| {
+        (
+            format!(" (eps {}, step {})", b.eps, b.step),
+            format!("-eps{}-step{}", b.eps, b.step),
+        )
+    });
+    let kind = format!("{tag}{}{ball_title}", phase_title(phase));
+    let budgeted: Vec<usize> = members
+        .iter()
+        .copied()
+        .filter(|&ci| cells[ci].spec.budget().is_some())
+        .collect();
+    let by_budget = differ_in_budget(ctx, &budgeted);
+    let used = if by_budget { &budgeted } else { members };
+    let series = recovered_series(ctx, policy, used, by_budget);
+    if series.is_empty() {
+        return None;
+    }
+    // The budgets that have a point (a control at budget 0 has none: its denominator is
+    // not significant, or it would be an attack).
+    let xs: Vec<f64> = series
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| p.x))
+        .collect();
+    let base = xs
+        .iter()
+        .copied()
+        .filter(|&x| x > 0.0)
+        .fold(f64::INFINITY, f64::min);
+    if by_budget && base.is_finite() {
+        curves.push(Curve {
+            policy: policy.to_string(),
+            kind: format!("{kind}, h = {h}{}", span_title(span)),
+            base,
+            series: series.clone(),
         });
     }
-    specs.extend(figure_ones(baseline, &curves, taken));
-    Ok(specs)
+    let label = policy_label(policy);
+    let stem = format!(
+        "{label}-{tag}{ball_suffix}{}-h{h}{}",
+        phase_suffix(phase),
+        span_suffix(span)
+    );
+    Some(PlotSpec {
+        name: unique(taken, format!("recovered-{}", slug(&stem))),
+        title: format!(
+            "Recovered fraction vs {}, {label}: {kind}, h = {h}{}",
+            ctx.baseline,
+            span_title(span)
+        ),
+        x_label: if by_budget {
+            cells[used[0]].spec.corruption.fault.budget_axis().into()
+        } else {
+            Q_AXIS.into()
+        },
+        y_label: "recovered fraction (± paired jackknife SE)".into(),
+        integer_x: !by_budget,
+        log_x: by_budget && spans_decades(&xs),
+        y_include: (0.0, 1.0),
+        y_refs: vec![0.0, 1.0],
+        series,
+    })
 }
 
 /// The series of one recovered-fraction plot over the cells `used`: each robust arm's (split

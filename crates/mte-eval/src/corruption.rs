@@ -283,6 +283,14 @@ impl Fault {
         }
     }
 
+    /// The PGD attack's settings, if this is one.
+    pub fn pgd(&self) -> Option<&mte_policy::PgdConfig> {
+        match self {
+            Self::Query(QueryAttack::Pgd(c)) => Some(c),
+            _ => None,
+        }
+    }
+
     /// What [`budget`](Self::budget) measures, with its unit: a plot's axis label.
     pub fn budget_axis(&self) -> &'static str {
         match self {

@@ -41,7 +41,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::corruption::{
     BiasDirection, CandidateCorruption, CorruptionSpec, Fault, ObservationCorruptor, OracleMode,
-    QueryAttack, SensorFault,
+    SensorFault,
 };
 use crate::environment::{Environment, PushTEnv};
 use crate::episode::{EpisodeObserver, NoObserver, QueryEvent, Stage, StageTimer, StepEvent};
@@ -782,10 +782,7 @@ impl<'e, 's> Episode<'e, 's> {
             None => self.frames[self.frames.len() - t_o..].to_vec(),
         };
         w.on_stage(Stage::Corrupt, t.elapsed().as_secs_f64());
-        let attack = match &spec.corruption.fault {
-            Fault::Query(QueryAttack::Pgd(cfg)) if corrupted => Some(cfg.clone()),
-            _ => None,
-        };
+        let attack = spec.corruption.fault.pgd().filter(|_| corrupted).cloned();
         Ok(Some(Pending {
             index: i,
             window,

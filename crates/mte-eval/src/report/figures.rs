@@ -2,7 +2,7 @@
 //! the recovered fraction against the attack budget) and their series. `plot` draws them.
 
 use super::*;
-use crate::corruption::{Fault, QueryAttack, Schedule};
+use crate::corruption::Schedule;
 use crate::label::{phase_suffix, span_suffix};
 
 /// Specs of every plot: coverage and success against `q`, recovered fraction against the
@@ -293,10 +293,7 @@ struct Ball {
 /// and samples. One curve without a ball where the iterated cells share one (and for every
 /// other fault): PGD iterations are a budget only at a fixed radius and step.
 fn pgd_curves(cells: &[CellData<'_>], members: &[usize]) -> Vec<(Option<Ball>, Vec<usize>)> {
-    let pgd = |ci: usize| match &cells[ci].spec.corruption.fault {
-        Fault::Query(QueryAttack::Pgd(c)) => Some(c),
-        _ => None,
-    };
+    let pgd = |ci: usize| cells[ci].spec.corruption.fault.pgd();
     let iterated: Vec<usize> = members
         .iter()
         .copied()

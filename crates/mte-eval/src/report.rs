@@ -1788,6 +1788,27 @@ mod tests {
         v
     }
 
+    /// The fixture's records without its error line, each episode of a cell named in `copies`
+    /// written once under every id listed for it (under its own id only where that is listed).
+    fn copied_episodes(copies: &[(&str, &[&str])]) -> Vec<Line> {
+        let mut out = Vec::new();
+        for l in lines().into_iter().filter(|l| !matches!(l, Line::Error(_))) {
+            let ids = match &l {
+                Line::Episode(e) => copies.iter().find(|(from, _)| *from == e.cell),
+                _ => None,
+            };
+            match (ids, &l) {
+                (Some((_, ids)), Line::Episode(e)) => out.extend(ids.iter().map(|id| {
+                    let mut e = e.clone();
+                    e.cell = (*id).into();
+                    Line::Episode(e)
+                })),
+                _ => out.push(l),
+            }
+        }
+        out
+    }
+
     fn report() -> Report {
         build(&manifest(), &lines(), &ReportOptions::default()).unwrap_or_else(|e| panic!("{e}"))
     }
@@ -2985,26 +3006,11 @@ mod tests {
         m.cells.push(cell("b-10", pgd(0.03, 10)));
         m.cells.push(cell("b-50", pgd(0.03, 50)));
         m.cells.push(cell("a-0", pgd(0.1, 0)));
-        let mut out: Vec<Line> = Vec::new();
-        for l in lines().into_iter().filter(|l| !matches!(l, Line::Error(_))) {
-            if let Line::Episode(e) = &l {
-                let ids: &[&str] = match e.cell.as_str() {
-                    Q1 => &["a-10", "b-10"],
-                    Q2 => &["a-50", "b-50"],
-                    CLEAN => &[CLEAN, "a-0"],
-                    _ => &[],
-                };
-                for id in ids {
-                    let mut e = e.clone();
-                    e.cell = (*id).into();
-                    out.push(Line::Episode(e));
-                }
-                if !ids.is_empty() {
-                    continue;
-                }
-            }
-            out.push(l);
-        }
+        let out = copied_episodes(&[
+            (Q1, &["a-10", "b-10"]),
+            (Q2, &["a-50", "b-50"]),
+            (CLEAN, &[CLEAN, "a-0"]),
+        ]);
         let r = build(&m, &out, &ReportOptions::default()).unwrap();
         let recovered: Vec<&Plot> = r
             .plots
@@ -3042,9 +3048,11 @@ mod tests {
             .find(|p| p.name.starts_with("figure-1"))
             .expect("figure 1");
         let labels: Vec<&str> = fig.spec.series.iter().map(|s| s.label.as_str()).collect();
+        let samples = PgdConfig::default().samples;
         for ball in ["eps 0.1, step 0.00625", "eps 0.03, step 0.001875"] {
+            let ball = format!("{ball}, {samples} samples");
             assert!(
-                labels.iter().any(|l| l.contains(ball)),
+                labels.iter().any(|l| l.contains(ball.as_str())),
                 "{ball}: {labels:?}"
             );
         }
@@ -3072,31 +3080,11 @@ mod tests {
         // A 1 px occluder that does nothing (the clean cell's episodes): no point, so the
         // occluder curve's baseline effort stays 16 px.
         m.cells.push(cell("occ-1", occ(1)));
-        let mut out: Vec<Line> = Vec::new();
-        for l in lines().into_iter().filter(|l| !matches!(l, Line::Error(_))) {
-            if let Line::Episode(e) = &l {
-                let twin = match e.cell.as_str() {
-                    Q1 => Some(("occ-24", "blur-8")),
-                    Q2 => Some(("occ-16", "blur-2")),
-                    CLEAN => {
-                        let mut e = e.clone();
-                        e.cell = "occ-1".into();
-                        out.push(Line::Episode(e));
-                        None
-                    }
-                    _ => None,
-                };
-                if let Some((a, b)) = twin {
-                    for id in [a, b] {
-                        let mut e = e.clone();
-                        e.cell = id.into();
-                        out.push(Line::Episode(e));
-                    }
-                    continue;
-                }
-            }
-            out.push(l);
-        }
+        let out = copied_episodes(&[
+            (Q1, &["occ-24", "blur-8"]),
+            (Q2, &["occ-16", "blur-2"]),
+            (CLEAN, &[CLEAN, "occ-1"]),
+        ]);
         let r = build(&m, &out, &ReportOptions::default()).unwrap();
         let plot = |prefix: &str| {
             r.plots

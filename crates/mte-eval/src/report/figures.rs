@@ -286,6 +286,8 @@ struct PlotGroup<'a> {
 struct Ball {
     eps: f64,
     step: f64,
+    /// Diffusion timesteps averaged per iteration.
+    samples: usize,
 }
 
 /// The `members` of one plot group split by PGD ball: iterated PGD cells by (eps, step,
@@ -316,7 +318,7 @@ fn pgd_curves(cells: &[CellData<'_>], members: &[usize]) -> Vec<(Option<Ball>, V
             }));
             v.sort_unstable();
             let (eps, step) = (f64::from_bits(eps), f64::from_bits(step));
-            Some((Some(Ball { eps, step }), v))
+            Some((Some(Ball { eps, step, samples }), v))
         })
         .collect()
 }
@@ -341,7 +343,7 @@ fn recovered_plot(
     let cells = ctx.cells;
     let (ball_title, ball_suffix) = ball.map_or_else(Default::default, |b| {
         (
-            format!(" (eps {}, step {})", b.eps, b.step),
+            format!(" (eps {}, step {}, {} samples)", b.eps, b.step, b.samples),
             format!("-eps{}-step{}", b.eps, b.step),
         )
     });
